@@ -1,0 +1,202 @@
+"""Command line: argument parsing and the commands; the work happens elsewhere."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+from dataclasses import MISSING, fields
+
+from .threads import cap_threads
+
+# Pool-wide and per-member options are generated from the config dataclasses,
+# so their help text and defaults live in one place (rl_pool/config.py).
+
+
+class _Parser(argparse.ArgumentParser):
+    def error(self, message):  # one line, exit 2 (argparse would print the usage block too)
+        sys.stderr.write(f"{self.prog}: error: {message}\n")
+        sys.exit(2)
+
+
+def _json_object(text: str) -> dict:
+    try:
+        value = json.loads(text)
+    except json.JSONDecodeError as exc:
+        raise argparse.ArgumentTypeError(f"not valid JSON ({exc.msg})") from None
+    if not isinstance(value, dict):
+        raise argparse.ArgumentTypeError("must be a JSON object")
+    return value
+
+
+def _add_dataclass_options(parser, cls, skip=(), required=()):
+    group = parser.add_argument_group(cls.__doc__.splitlines()[0].rstrip("."))
+    for f in fields(cls):
+        if f.name in skip:
+            continue
+        default = f.default if f.default is not MISSING else f.default_factory()
+        kind = _json_object if isinstance(default, dict) else type(default)
+        help_text = f.metadata["help"] + ("" if f.name in required else f" (default: {json.dumps(default)})")
+        group.add_argument("--" + f.name.replace("_", "-"), dest=f.name, type=kind, default=None,
+                           required=f.name in required, choices=f.metadata.get("choices"),
+                           metavar=f.name.upper() if not f.metadata.get("choices") else None,
+                           help=help_text)
+
+
+def _explicit(args, cls, skip=()) -> dict:
+    return {f.name: getattr(args, f.name) for f in fields(cls)
+            if f.name not in skip and getattr(args, f.name, None) is not None}
+
+
+def _member_config(args, **override):
+    from .config import MemberConfig
+
+    return MemberConfig(**(_explicit(args, MemberConfig) | override))
+
+
+# ----------------------------------------------------------------- commands
+def cmd_train(args) -> int:
+    from . import member
+    from .config import PoolConfig
+
+    requested = _explicit(args, PoolConfig)
+    return member.run(args.pool_dir, requested, _member_config(args), quiet=args.quiet)
+
+
+def cmd_launch(args) -> int:
+    from . import launch
+    from .config import MemberConfig, PoolConfig
+
+    requested = _explicit(args, PoolConfig)
+    member_opts = _explicit(args, MemberConfig, skip=("member", "learning_rate"))
+    return launch.launch(args.pool_dir, requested, member_opts, args.learning_rates,
+                         args.learning_rate, quiet=args.quiet)
+
+
+def cmd_status(args) -> int:
+    from . import status
+
+    st = status.status(args.pool_dir)
+    if args.json:
+        print(json.dumps(st, indent=1))
+    else:
+        print(status.format_table(st, last=args.last))
+    return 0
+
+
+def cmd_plot(args) -> int:
+    from . import plot
+
+    out = plot.plot_pool(args.pool_dir, args.out)
+    print(out)
+    return 0
+
+
+def cmd_evaluate(args) -> int:
+    from . import evaluate
+
+    res = evaluate.evaluate_path(args.target, episodes=args.episodes, workers=args.workers,
+                                 seed=args.seed, worker=args.worker, mode=args.mode)
+    if args.json:
+        print(json.dumps(res))
+    else:
+        print(f"{res['episodes']} episodes: mean {res['mean_return']:.2f} ± {res['std_return']:.2f} "
+              f"(min {min(res['returns']):.2f}, max {max(res['returns']):.2f}) in {res['seconds']:.1f}s "
+              f"on {res['workers']} workers")
+    return 0
+
+
+def cmd_replay(args) -> int:
+    from . import replay
+
+    out = replay.replay_path(args.target, args.out, steps=args.steps, seed=args.seed, fps=args.fps,
+                             width=args.width, height=args.height)
+    print(out)
+    return 0
+
+
+def build_parser() -> argparse.ArgumentParser:
+    from .config import MemberConfig, PoolConfig
+
+    p = _Parser(prog="rl-pool", description="Branch-and-merge REINFORCE pools for MuJoCo tasks.")
+    sub = p.add_subparsers(dest="command", required=True, parser_class=_Parser)
+
+    t = sub.add_parser("train", help="run one member of a pool (creates the pool, or resumes it)")
+    t.add_argument("--pool-dir", required=True, help="the shared pool directory")
+    t.add_argument("--quiet", action="store_true", help="log to the pool's log file only, not stderr")
+    _add_dataclass_options(t, PoolConfig)
+    _add_dataclass_options(t, MemberConfig)
+    t.set_defaults(func=cmd_train)
+
+    la = sub.add_parser("launch", help="start N members as local processes and watch them")
+    la.add_argument("--pool-dir", required=True, help="the shared pool directory")
+    la.add_argument("--learning-rates", type=_float_list, default=None, metavar="LR0,LR1,...",
+                    help="one learning rate per member (default: the first member at 1/10 of "
+                         "--learning-rate, the others at --learning-rate)")
+    la.add_argument("--quiet", action="store_true", help="print only selected iterations")
+    _add_dataclass_options(la, PoolConfig)
+    _add_dataclass_options(la, MemberConfig, skip=("member",))
+    la.set_defaults(func=cmd_launch)
+
+    s = sub.add_parser("status", help="show a pool: members, best, recent iterations")
+    s.add_argument("pool_dir", help="the pool directory")
+    s.add_argument("--json", action="store_true", help="print one JSON object")
+    s.add_argument("--last", type=int, default=10, help="iterations shown in the table (default 10)")
+    s.set_defaults(func=cmd_status)
+
+    pl = sub.add_parser("plot", help="plot the per-iteration evaluation return to a PNG")
+    pl.add_argument("pool_dir")
+    pl.add_argument("--out", default=None, help="output PNG (default: POOL/progress.png)")
+    pl.set_defaults(func=cmd_plot)
+
+    ev = sub.add_parser("evaluate", help="run an agent (or a pool's best) on fresh episodes")
+    ev.add_argument("target", help="a pool directory (its best.npz) or an agent .npz")
+    ev.add_argument("--episodes", type=int, default=10)
+    ev.add_argument("--workers", type=int, default=1, help="worker processes (spawned, one math thread each)")
+    ev.add_argument("--seed", type=int, default=1_000_000, help="first episode's reset seed; episode k uses seed+k")
+    ev.add_argument("--mode", choices=("mean", "sample"), default="mean", help="actions: Beta mean or samples")
+    ev.add_argument("--worker", default=None, metavar="MODULE:CLASS",
+                    help="a custom evaluation worker (subclass of rl_pool.evaluate.EvalWorker)")
+    ev.add_argument("--json", action="store_true")
+    ev.set_defaults(func=cmd_evaluate)
+
+    rp = sub.add_parser("replay", help="render an agent offscreen to a GIF or MP4")
+    rp.add_argument("target", help="a pool directory (its best.npz) or an agent .npz")
+    rp.add_argument("--out", required=True, help="FILE.gif or FILE.mp4")
+    rp.add_argument("--steps", type=int, default=0, help="steps to render (default: one episode)")
+    rp.add_argument("--seed", type=int, default=0)
+    rp.add_argument("--fps", type=int, default=30)
+    rp.add_argument("--width", type=int, default=480)
+    rp.add_argument("--height", type=int, default=360)
+    rp.set_defaults(func=cmd_replay)
+    return p
+
+
+def _float_list(text: str) -> list[float]:
+    try:
+        return [float(x) for x in text.split(",") if x.strip()]
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected comma-separated numbers, got {text!r}") from None
+
+
+def main(argv=None) -> int:
+    cap_threads()  # before numpy or jax is imported anywhere in this process
+    os.environ.setdefault("MUJOCO_GL", "egl")
+    from .errors import UsageError
+
+    args = build_parser().parse_args(argv)
+    try:
+        return args.func(args)
+    except UsageError as exc:
+        sys.stderr.write(f"rl-pool: error: {exc}\n")
+        return 2
+    except KeyboardInterrupt:
+        sys.stderr.write("rl-pool: interrupted\n")
+        return 130
+    except BrokenPipeError:
+        return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,145 @@
+"""Typed configuration: what a pool shares (``pool.json``) and what each member sets.
+
+Each field's one-line ``help`` is also its command-line help. Options left
+unset on the command line take the pool's saved value when the pool exists,
+else the default here; options set explicitly must agree with the pool.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import MISSING, asdict, dataclass, field, fields
+
+from .errors import UsageError
+
+PROTOCOL = 1
+
+
+def opt(default, help: str, choices=None, **kw):
+    return field(default=default, metadata={"help": help, "choices": choices, **kw})
+
+
+@dataclass(frozen=True)
+class PoolConfig:
+    """Settings every member of a pool must share; saved in ``POOL/pool.json``."""
+
+    env: str = opt("Swimmer-v5", "gymnasium environment id (bounded Box actions)")
+    env_kwargs: dict = field(default_factory=dict, metadata={
+        "help": "JSON object of keyword arguments for gymnasium.make", "choices": None})
+    max_episode_steps: int = opt(0, "episode length (0: the environment's own limit)")
+    pool_size: int = opt(1, "number of members N")
+    train_episodes: int = opt(20, "training episodes per member per iteration")
+    batch_episodes: int = opt(10, "episodes per gradient step (stepped in lockstep)")
+    eval_episodes: int = opt(3, "evaluation episodes per member per iteration (no updates)")
+    eval_mode: str = opt("mean", "evaluation actions: Beta mean or samples", ("mean", "sample"))
+    gamma: float = opt(1.0, "discount factor (Swimmer needs ~1: 0.99 traps it near 40)")
+    baseline: str = opt("time", "baseline: leave-one-out time-indexed mean return, or none", ("time", "none"))
+    optimizer: str = opt("adam", "step-size rule: Adam, or fixed-length normalised gradient", ("adam", "normalized"))
+    policy: str = opt("linear", "policy features: linear in normalised observations", ("linear",))
+    seed: int = opt(0, "root seed; every random draw derives from (seed, member, iteration)")
+
+    @property
+    def updates_per_iteration(self) -> int:
+        return self.train_episodes // self.batch_episodes
+
+    @property
+    def majority(self) -> int:
+        return self.pool_size // 2 + 1
+
+    def validate(self) -> PoolConfig:
+        for name in ("pool_size", "train_episodes", "batch_episodes", "eval_episodes"):
+            if getattr(self, name) < 1:
+                raise UsageError(f"--{name.replace('_', '-')} must be a positive integer, got {getattr(self, name)}")
+        if self.max_episode_steps < 0:
+            raise UsageError(f"--max-episode-steps must be >= 0, got {self.max_episode_steps}")
+        if self.train_episodes % self.batch_episodes:
+            raise UsageError(
+                f"--train-episodes ({self.train_episodes}) must be a multiple of --batch-episodes ({self.batch_episodes})")
+        if not (math.isfinite(self.gamma) and 0.0 <= self.gamma <= 1.0):
+            raise UsageError(f"--gamma must be in [0, 1], got {self.gamma}")
+        if self.seed < 0:
+            raise UsageError(f"--seed must be >= 0, got {self.seed}")
+        for f in fields(self):
+            choices = f.metadata.get("choices")
+            if choices and getattr(self, f.name) not in choices:
+                raise UsageError(f"--{f.name.replace('_', '-')} must be one of {', '.join(choices)}")
+        if not isinstance(self.env_kwargs, dict):
+            raise UsageError("--env-kwargs must be a JSON object")
+        return self
+
+    def to_json(self) -> dict:
+        return {"protocol": PROTOCOL, **asdict(self)}
+
+    @classmethod
+    def from_json(cls, d: dict) -> PoolConfig:
+        if not isinstance(d, dict) or d.get("protocol") != PROTOCOL:
+            raise ValueError(f"protocol {d.get('protocol') if isinstance(d, dict) else None!r}, expected {PROTOCOL}")
+        names = {f.name for f in fields(cls)}
+        missing = names - d.keys()
+        if missing:
+            raise ValueError(f"missing {', '.join(sorted(missing))}")
+        return cls(**{k: d[k] for k in names})
+
+    @classmethod
+    def merged(cls, requested: dict, saved: PoolConfig | None, where: str = "the pool") -> PoolConfig:
+        """Combine explicitly requested values with a saved pool config.
+
+        ``requested`` maps field names to values the user set (unset fields are
+        absent). Against a saved config every requested value must agree.
+        """
+        if saved is None:
+            base = {f.name: (f.default if f.default is not MISSING else f.default_factory())
+                    for f in fields(cls)}
+            base.update(requested)
+            return cls(**base).validate()
+        for name, value in requested.items():
+            have = getattr(saved, name)
+            if name == "max_episode_steps" and value == 0:
+                continue  # 0 means "the env's limit", resolved when the pool was made
+            if _norm(value) != _norm(have):
+                flag = "--" + name.replace("_", "-")
+                raise UsageError(
+                    f"{where} was made with {flag} {_show(have)}, this run asks for {_show(value)} "
+                    "(drop the option to use the pool's, or use another --pool-dir)")
+        return saved
+
+
+def _norm(v):
+    return json.dumps(v, sort_keys=True)
+
+
+def _show(v) -> str:
+    return json.dumps(v) if isinstance(v, dict) else str(v)
+
+
+@dataclass(frozen=True)
+class MemberConfig:
+    """Per-member settings: not in ``pool.json``, free to differ between members."""
+
+    member: int = opt(0, "this member's index I in 0..N-1")
+    learning_rate: float = opt(0.01, "this member's step size (recorded in its deposits)")
+    iterations: int = opt(100, "the pool's target: stop once iteration K is selected")
+    barrier_timeout: float = opt(1800.0, "seconds to wait at a barrier before going on with a quorum (or giving up)")
+    heartbeat_timeout: float = opt(60.0, "a member whose heartbeat has not changed for this long is stale")
+    quorum: int = opt(0, "deposits needed to go on without stale members (0: majority, floor(N/2)+1)")
+    keep_iterations: int = opt(5, "keep non-selected agents of the last K iterations (selected ones are always kept)")
+    poll_max: float = opt(0.01, "longest pause between barrier polls, seconds (raise on busy network filesystems)")
+
+    def validate(self, pool_size: int) -> MemberConfig:
+        if not 0 <= self.member < pool_size:
+            raise UsageError(f"--member must be in 0..{pool_size - 1} for a pool of {pool_size}, got {self.member}")
+        if not (math.isfinite(self.learning_rate) and self.learning_rate > 0):
+            raise UsageError(f"--learning-rate must be positive, got {self.learning_rate}")
+        if self.iterations < 1:
+            raise UsageError(f"--iterations must be a positive integer, got {self.iterations}")
+        if not (self.barrier_timeout > 0 and self.heartbeat_timeout > 0 and self.poll_max > 0):
+            raise UsageError("--barrier-timeout, --heartbeat-timeout and --poll-max must be positive")
+        if not 0 <= self.quorum <= pool_size:
+            raise UsageError(f"--quorum must be in 1..{pool_size} (0 for the majority), got {self.quorum}")
+        if self.keep_iterations < 0:
+            raise UsageError(f"--keep-iterations must be >= 0, got {self.keep_iterations}")
+        return self
+
+    def quorum_for(self, pool_size: int) -> int:
+        return self.quorum or pool_size // 2 + 1

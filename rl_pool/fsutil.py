@@ -1,0 +1,141 @@
+"""Small filesystem primitives for the shared directory.
+
+Everything written into a pool is written whole or not at all: a temp file in
+the same directory, flushed and fsynced, then ``os.replace`` (atomic on POSIX
+and on NFS). ``create_exclusive`` uses ``os.link`` of a complete temp file,
+which fails if the target exists: an atomic create-once that, unlike
+``O_EXCL`` on old NFS or ``flock``, needs no server-side lock support.
+"""
+
+from __future__ import annotations
+
+import errno
+import json
+import os
+import socket
+import time
+import uuid
+
+TMP_MARK = ".tmp-"
+
+#: Errors worth one more try on a network filesystem (stale handle, interrupted I/O).
+TRANSIENT = {errno.ESTALE, errno.EIO, errno.EINTR, errno.EAGAIN}
+
+
+def tmp_name(path: str, tag: str = "") -> str:
+    d, base = os.path.split(os.fspath(path))
+    host = socket.gethostname().split(".")[0]
+    return os.path.join(d, f".{base}{TMP_MARK}{tag}{host}-{os.getpid()}-{uuid.uuid4().hex[:8]}")
+
+
+def _fsync_dir(d: str) -> None:
+    try:
+        fd = os.open(d or ".", os.O_RDONLY)
+    except OSError:
+        return
+    try:
+        os.fsync(fd)
+    except OSError:
+        pass
+    finally:
+        os.close(fd)
+
+
+def _write_tmp(path: str, data: bytes) -> str:
+    tmp = tmp_name(path)
+    fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o644)
+    try:
+        view = memoryview(data)
+        while view:
+            n = os.write(fd, view)
+            view = view[n:]
+        os.fsync(fd)
+    except BaseException:
+        os.close(fd)
+        _unlink_quiet(tmp)
+        raise
+    os.close(fd)
+    return tmp
+
+
+def _unlink_quiet(path: str) -> None:
+    try:
+        os.unlink(path)
+    except OSError:
+        pass
+
+
+def atomic_write(path, data: bytes, sync_dir: bool = True) -> None:
+    """Replace ``path`` with ``data`` atomically."""
+    path = os.fspath(path)
+    tmp = _write_tmp(path, data)
+    try:
+        os.replace(tmp, path)
+    except BaseException:
+        _unlink_quiet(tmp)
+        raise
+    if sync_dir:
+        _fsync_dir(os.path.dirname(path))
+
+
+def create_exclusive(path, data: bytes) -> bool:
+    """Create ``path`` with ``data`` unless it exists. True if this call created it."""
+    path = os.fspath(path)
+    tmp = _write_tmp(path, data)
+    try:
+        os.link(tmp, path)
+        created = True
+    except FileExistsError:
+        created = False
+    finally:
+        _unlink_quiet(tmp)
+    if created:
+        _fsync_dir(os.path.dirname(path))
+    return created
+
+
+def dumps(obj) -> bytes:
+    return (json.dumps(obj, indent=1, sort_keys=True, allow_nan=False) + "\n").encode()
+
+
+def write_json(path, obj, sync_dir: bool = True) -> None:
+    atomic_write(path, dumps(obj), sync_dir=sync_dir)
+
+
+def read_bytes(path, retries: int = 3) -> bytes:
+    """Read a whole file, retrying transient network-filesystem errors with backoff."""
+    delay = 0.01
+    for attempt in range(retries + 1):
+        try:
+            with open(path, "rb") as fh:
+                return fh.read()
+        except OSError as exc:
+            if exc.errno not in TRANSIENT or attempt == retries:
+                raise
+            time.sleep(delay)
+            delay *= 4
+    raise AssertionError("unreachable")
+
+
+def read_json(path):
+    """Parse a JSON file; raises OSError or ValueError (incl. JSONDecodeError)."""
+    return json.loads(read_bytes(path).decode("utf-8"))
+
+
+def listdir(path) -> list[str]:
+    delay = 0.01
+    for attempt in range(4):
+        try:
+            return os.listdir(path)
+        except FileNotFoundError:
+            return []
+        except OSError as exc:
+            if exc.errno not in TRANSIENT or attempt == 3:
+                raise
+            time.sleep(delay)
+            delay *= 4
+    return []
+
+
+def is_tmp(name: str) -> bool:
+    return TMP_MARK in name and name.startswith(".")

@@ -1,0 +1,189 @@
+"""One member's loop: take the selected agent, train, evaluate, deposit, wait, repeat.
+
+Resume is the default: started on an existing pool, a member finds the last
+selected iteration and rejoins there; if its own deposit of the current
+iteration is already on disk it only waits. Because every random draw comes
+from ``(seed, member, iteration)``, an iteration redone after a kill produces
+the same deposit as the lost attempt would have.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+import os
+import signal
+import socket
+import sys
+import time
+import traceback
+
+from . import envs, pool, trainer
+from .agent import Agent, AgentMeta
+from .config import MemberConfig, PoolConfig
+from .errors import UsageError
+
+log = logging.getLogger("rl_pool")
+
+EXIT_OK, EXIT_FAILED, EXIT_USAGE, EXIT_BARRIER = 0, 1, 2, 3
+
+
+class Stopped(BaseException):
+    """SIGTERM/SIGINT arrived; every file on disk is whole, so stopping anywhere is safe."""
+
+    def __init__(self, signum: int):
+        super().__init__(signal.Signals(signum).name)
+        self.signum = signum
+
+
+def _on_signal(signum, frame):
+    raise Stopped(signum)
+
+
+def make_initial(cfg: PoolConfig):
+    """``(initial agent, config with the episode length resolved)``; deterministic in ``cfg``."""
+    kwargs = dict(cfg.env_kwargs)
+    if cfg.max_episode_steps:
+        kwargs["max_episode_steps"] = cfg.max_episode_steps
+    env, info = envs.make(cfg.env, kwargs)
+    env.close()
+    cfg = dataclasses.replace(cfg, max_episode_steps=info.max_episode_steps)
+    meta = AgentMeta(cfg.env, dict(cfg.env_kwargs), info.max_episode_steps, info.obs_dim, info.act_dim,
+                     tuple(float(x) for x in info.low), tuple(float(x) for x in info.high), cfg.policy)
+    return Agent.initial(meta), cfg
+
+
+def _setup_logging(paths: pool.Paths, member: int, quiet: bool) -> None:
+    fmt = logging.Formatter(f"%(asctime)s {pool.member_name(member)} %(levelname)s %(message)s")
+    log.setLevel(logging.INFO)
+    log.handlers.clear()
+    log.propagate = False
+    fh = logging.FileHandler(paths.log(member))
+    fh.setFormatter(fmt)
+    log.addHandler(fh)
+    if not quiet:
+        sh = logging.StreamHandler(sys.stderr)
+        sh.setFormatter(fmt)
+        log.addHandler(sh)
+
+
+def _check_not_running(paths: pool.Paths, member: int, stale_after: float) -> None:
+    hb = pool.read_heartbeat(paths, member)
+    if not hb or hb.get("host") != pool.HOST or hb.get("state") in pool.TERMINAL_STATES:
+        return
+    pid = hb.get("pid")
+    if not isinstance(pid, int) or pid == os.getpid() or not pool.pid_alive(pid):
+        return
+    try:
+        with open(f"/proc/{pid}/cmdline", "rb") as fh:
+            cmd = fh.read().decode(errors="replace")
+    except OSError:
+        cmd = ""
+    age = time.time() - os.path.getmtime(paths.heartbeat(member))
+    if ("rl_pool" in cmd or "rl-pool" in cmd) and age < stale_after:
+        raise UsageError(f"member {member} of {paths.root} is already running (pid {pid})")
+
+
+def run(pool_dir: str, requested: dict, mc: MemberConfig, quiet: bool = False) -> int:
+    """Run member ``mc.member`` until the pool's iteration ``mc.iterations`` is selected."""
+    paths = pool.Paths(pool_dir)
+    cfg = pool.open_pool(paths, requested, make_initial)
+    mc.validate(cfg.pool_size)
+    me = mc.member
+    _check_not_running(paths, me, mc.heartbeat_timeout)
+    _setup_logging(paths, me, quiet)
+
+    last = pool.last_selected(paths)
+    if last >= mc.iterations:
+        log.info("pool already at iteration %d (target %d): nothing to do", last, mc.iterations)
+        return EXIT_OK
+
+    old = {s: signal.signal(s, _on_signal) for s in (signal.SIGTERM, signal.SIGINT)}
+    hb = pool.Heartbeat(paths, me, interval=min(2.0, mc.heartbeat_timeout / 4),
+                        extra={"learning_rate": mc.learning_rate, "target": mc.iterations})
+    try:
+        hb.start()
+        _loop(paths, cfg, mc, hb, last + 1)
+    except Stopped as exc:
+        log.warning("stopped by %s; deposits on disk are whole, restart to resume", exc)
+        hb.stop("stopped", error=f"stopped by {exc}")
+        return 128 + exc.signum
+    except pool.BarrierTimeout as exc:
+        log.error("%s", exc)
+        hb.stop("failed", error=str(exc))
+        return EXIT_BARRIER
+    except UsageError:
+        hb.stop("failed", error="bad input")
+        raise
+    except BaseException as exc:
+        tb = traceback.format_exc()
+        log.error("member failed:\n%s", tb)
+        hb.stop("failed", error=f"{type(exc).__name__}: {exc}", traceback=tb[-4000:])
+        if not quiet:
+            sys.stderr.write(tb)
+        return EXIT_FAILED
+    finally:
+        for s, h in old.items():
+            signal.signal(s, h)
+    hb.stop("finished")
+    log.info("done: iteration %d selected", mc.iterations)
+    return EXIT_OK
+
+
+def _loop(paths: pool.Paths, cfg: PoolConfig, mc: MemberConfig, hb: pool.Heartbeat, first: int) -> None:
+    me = mc.member
+    from . import learner
+
+    learner.enable_compilation_cache()
+    like = pool.load_selected_agent(paths, 0)
+    kwargs = dict(cfg.env_kwargs, max_episode_steps=cfg.max_episode_steps)
+    env_list = [envs.make(cfg.env, kwargs)[0] for _ in range(max(cfg.batch_episodes, cfg.eval_episodes))]
+    liveness = pool.Liveness(paths, mc.heartbeat_timeout)
+    quorum = mc.quorum_for(cfg.pool_size)
+    log.info("member %d of %d on %s, lr %g, from iteration %d to %d (quorum %d)",
+             me, cfg.pool_size, cfg.env, mc.learning_rate, first, mc.iterations, quorum)
+
+    for i in range(first, mc.iterations + 1):
+        os.makedirs(paths.iteration(i), exist_ok=True)
+        pool.remove_own_temps(paths, i, me)
+        if os.path.exists(paths.deposit_json(i, me)):
+            log.info("iteration %d: own deposit already on disk; waiting for the others", i)
+            mine = None
+        else:
+            start = pool.load_selected_agent(paths, i - 1)
+            prev = pool.read_selected(paths, i - 1)
+            hb.set(state="training", iteration=i)
+            tr = trainer.train(start, env_list, cfg, mc.learning_rate, me, i)
+            hb.set(state="evaluating")
+            ev = trainer.evaluate(tr.agent, env_list, cfg, i)
+            metrics = ev.summary() | {
+                "learning_rate": mc.learning_rate,
+                "train_steps": tr.steps, "train_seconds": tr.seconds,
+                "train_return_mean": sum(tr.episode_returns) / len(tr.episode_returns),
+                "eval_steps": ev.steps, "eval_seconds": ev.seconds,
+                "grad_norm": tr.grad_norms[-1],
+                "parent": {"iteration": i - 1, "member": prev.get("member")},
+                "host": socket.gethostname(), "pid": os.getpid(), "time": time.time(),
+            }
+            pool.deposit(paths, i, me, tr.agent, metrics)
+            mine = ev.mean
+            hb.set(last_return=mine)
+        hb.set(state="waiting", iteration=i)
+        res = pool.barrier(paths, i, cfg, me, like, quorum, mc.barrier_timeout, liveness,
+                           poll_max=mc.poll_max)
+        pool.fsutil.write_json(paths.wait_json(i, me),
+                               {"iteration": i, "member": me, "wait_seconds": res.waited}, sync_dir=False)
+        sel = res.selection
+        if res.created:
+            pool.update_best(paths, sel)
+            if i - mc.keep_iterations >= 1:
+                pool.collect_garbage(paths, i - mc.keep_iterations)
+        log.info("iteration %d: selected member %s (eval return %s); mine %s; waited %.3fs",
+                 i, sel.get("member"), _fmt(sel.get("eval_return")), _fmt(mine), res.waited)
+        hb.set(selected=sel.get("member"), selected_return=sel.get("eval_return"))
+
+
+def _fmt(x) -> str:
+    return "-" if x is None else f"{x:.2f}"
+
+

@@ -1,0 +1,526 @@
+"""The shared-directory protocol: init, deposit, barrier, selection, resume, GC.
+
+There is no coordinator: every member reads and writes files in ``POOL/`` and
+all members reach the same decisions because the decisions are pure functions
+of immutable, atomically written files::
+
+    pool.json                        pool-wide config (create-once)
+    iterations/000000/initial.npz    the initial agent; selected.json points at it
+    iterations/000007/member-002.npz member 2's agent after training in iteration 7
+    iterations/000007/member-002.json its metrics: written last, marks the deposit done
+    iterations/000007/member-002.wait.json  its time at the barrier (known only after it)
+    iterations/000007/selected.json  the winner and why (create-once: first writer wins)
+    best.npz, best.json              best selected agent so far
+    members/member-002.json          heartbeat
+    logs/member-002.log              log
+
+``selected.json`` is created with an atomic link, so if two members ever
+disagree (one went on with a quorum while a late deposit landed) the first
+writer's decision stands and everyone adopts it.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import logging
+import math
+import os
+import re
+import socket
+import threading
+import time
+from dataclasses import dataclass
+
+from . import fsutil
+from .agent import Agent
+from .config import PoolConfig
+from .errors import AgentFileError, UsageError
+
+log = logging.getLogger("rl_pool")
+
+DEPOSIT_RE = re.compile(r"^member-(\d{3,})\.json$")
+ITER_RE = re.compile(r"^\d{6,}$")
+TERMINAL_STATES = ("finished", "failed", "stopped")
+
+
+def member_name(m: int) -> str:
+    return f"member-{m:03d}"
+
+
+def sha256(data: bytes) -> str:
+    return hashlib.sha256(data).hexdigest()
+
+
+class Paths:
+    """Where each file of a pool lives."""
+
+    def __init__(self, root):
+        self.root = os.path.abspath(os.fspath(root))
+        self.pool_json = os.path.join(self.root, "pool.json")
+        self.lock = os.path.join(self.root, ".init.lock")
+        self.iterations = os.path.join(self.root, "iterations")
+        self.members = os.path.join(self.root, "members")
+        self.logs = os.path.join(self.root, "logs")
+        self.best_npz = os.path.join(self.root, "best.npz")
+        self.best_json = os.path.join(self.root, "best.json")
+
+    def iteration(self, i: int) -> str:
+        return os.path.join(self.iterations, f"{i:06d}")
+
+    def initial(self) -> str:
+        return os.path.join(self.iteration(0), "initial.npz")
+
+    def deposit_npz(self, i: int, m: int) -> str:
+        return os.path.join(self.iteration(i), member_name(m) + ".npz")
+
+    def deposit_json(self, i: int, m: int) -> str:
+        return os.path.join(self.iteration(i), member_name(m) + ".json")
+
+    def wait_json(self, i: int, m: int) -> str:
+        return os.path.join(self.iteration(i), member_name(m) + ".wait.json")
+
+    def selected(self, i: int) -> str:
+        return os.path.join(self.iteration(i), "selected.json")
+
+    def heartbeat(self, m: int) -> str:
+        return os.path.join(self.members, member_name(m) + ".json")
+
+    def log(self, m: int) -> str:
+        return os.path.join(self.logs, member_name(m) + ".log")
+
+    def rel(self, path: str) -> str:
+        return os.path.relpath(path, self.root)
+
+    def resolve(self, rel: str) -> str:
+        """A path named inside a pool file, refused if it points outside the pool."""
+        full = os.path.normpath(os.path.join(self.root, rel))
+        if os.path.isabs(rel) or not full.startswith(self.root + os.sep):
+            raise ValueError(f"path {rel!r} points outside the pool")
+        return full
+
+
+# ---------------------------------------------------------------- pool.json
+def read_config(paths: Paths) -> PoolConfig:
+    """The saved pool config; UsageError if the directory is not an rl-pool pool."""
+    if not os.path.isdir(paths.root):
+        raise UsageError(f"no pool directory at {paths.root}")
+    if not os.path.exists(paths.pool_json):
+        raise UsageError(f"{paths.root} is not an rl-pool pool (no pool.json)")
+    try:
+        return PoolConfig.from_json(fsutil.read_json(paths.pool_json))
+    except (OSError, ValueError, TypeError) as exc:
+        raise UsageError(f"{paths.pool_json} is not a valid rl-pool pool config ({exc})") from None
+
+
+def open_pool(paths: Paths, requested: dict, initial_agent, lock_timeout: float = 60.0) -> PoolConfig:
+    """Create the pool (once) or check that ``requested`` agrees with it.
+
+    ``initial_agent(config) -> (Agent, resolved config)`` builds the iteration-0
+    agent; it must be deterministic in the config, since any member may build it.
+    Creation is an atomic link of a complete file, safe without working locks;
+    the file lock (with a timeout) only keeps racing members on one host from
+    building the environment twice.
+    """
+    from filelock import FileLock, Timeout
+
+    if os.path.exists(paths.root) and not os.path.isdir(paths.root):
+        raise UsageError(f"{paths.root} exists and is not a directory")
+    if os.path.isdir(paths.root) and not os.path.exists(paths.pool_json):
+        foreign = [n for n in fsutil.listdir(paths.root)
+                   if n not in ("iterations", "members", "logs", ".init.lock") and not fsutil.is_tmp(n)]
+        if foreign:
+            raise UsageError(
+                f"{paths.root} is not empty and is not an rl-pool pool (found {foreign[0]!r}); use a new --pool-dir")
+    for d in (paths.root, paths.iterations, paths.members, paths.logs):
+        os.makedirs(d, exist_ok=True)
+    if os.path.exists(paths.pool_json):
+        cfg = PoolConfig.merged(requested, read_config(paths), where=f"pool {paths.root}")
+        _ensure_initial(paths, cfg, initial_agent)
+        return cfg
+    try:
+        with FileLock(paths.lock, timeout=lock_timeout):
+            if not os.path.exists(paths.pool_json):
+                cfg = PoolConfig.merged(requested, None)
+                agent, cfg = initial_agent(cfg)
+                doc = cfg.to_json() | {"created": time.time()}
+                fsutil.create_exclusive(paths.pool_json, fsutil.dumps(doc))
+    except Timeout:
+        log.warning("init lock %s busy for %.0fs; going on without it", paths.lock, lock_timeout)
+    cfg = PoolConfig.merged(requested, read_config(paths), where=f"pool {paths.root}")
+    _ensure_initial(paths, cfg, initial_agent)
+    return cfg
+
+
+def _ensure_initial(paths: Paths, cfg: PoolConfig, initial_agent) -> None:
+    if os.path.exists(paths.selected(0)):
+        return
+    os.makedirs(paths.iteration(0), exist_ok=True)
+    agent, _ = initial_agent(cfg)
+    data = agent.to_bytes()
+    fsutil.create_exclusive(paths.initial(), data)
+    doc = {"iteration": 0, "member": None, "eval_return": None, "initial": True,
+           "agent": paths.rel(paths.initial()), "agent_sha256": sha256(fsutil.read_bytes(paths.initial())),
+           "considered": [], "skipped": []}
+    fsutil.create_exclusive(paths.selected(0), fsutil.dumps(doc))
+
+
+# ---------------------------------------------------------------- iterations
+def iterations_on_disk(paths: Paths) -> list[int]:
+    return sorted(int(n) for n in fsutil.listdir(paths.iterations) if ITER_RE.match(n))
+
+
+def read_selected(paths: Paths, i: int) -> dict | None:
+    """``selected.json`` of iteration ``i`` or None if not (yet, or readably) there."""
+    try:
+        doc = fsutil.read_json(paths.selected(i))
+    except FileNotFoundError:
+        return None
+    except (OSError, ValueError) as exc:
+        log.warning("unreadable %s: %s", paths.selected(i), exc)
+        return None
+    return doc if isinstance(doc, dict) and doc.get("iteration") == i else None
+
+
+def last_selected(paths: Paths) -> int:
+    """The highest iteration whose selection is on disk (0: only the initial agent)."""
+    for i in reversed(iterations_on_disk(paths)):
+        if read_selected(paths, i) is not None:
+            return i
+    return -1
+
+
+def load_selected_agent(paths: Paths, i: int) -> Agent:
+    """The agent selected in iteration ``i``, checked against the hash in ``selected.json``."""
+    sel = read_selected(paths, i)
+    if sel is None:
+        raise RuntimeError(f"iteration {i} has no selection")
+    path = paths.resolve(sel["agent"])
+    data = fsutil.read_bytes(path)
+    if sha256(data) != sel.get("agent_sha256"):
+        raise RuntimeError(f"{path} does not match the hash recorded in {paths.selected(i)}")
+    return Agent.from_bytes(data, source=path)
+
+
+# ---------------------------------------------------------------- deposits
+def deposit(paths: Paths, i: int, m: int, agent: Agent, metrics: dict) -> dict:
+    """Write agent then metrics, each atomically; the metrics file marks the deposit done."""
+    os.makedirs(paths.iteration(i), exist_ok=True)
+    data = agent.to_bytes()
+    fsutil.atomic_write(paths.deposit_npz(i, m), data)
+    doc = {"iteration": i, "member": m, "agent_sha256": sha256(data), **metrics}
+    fsutil.write_json(paths.deposit_json(i, m), doc)
+    return doc
+
+
+def present(paths: Paths, i: int, pool_size: int) -> set[int]:
+    """Members whose deposit marker exists; anything else in the directory is ignored."""
+    out = set()
+    for name in fsutil.listdir(paths.iteration(i)):
+        mm = DEPOSIT_RE.match(name)
+        if mm and int(mm.group(1)) < pool_size:
+            out.add(int(mm.group(1)))
+    return out
+
+
+def read_deposit(paths: Paths, i: int, m: int, like: Agent | None = None):
+    """``(metrics, agent)`` of a deposit, or raise ValueError with the reason it is invalid.
+
+    Checks: JSON parses and names this iteration and member; ``eval_return`` is
+    a finite number; the ``.npz`` matches the recorded hash, loads without
+    pickle, holds finite arrays of the right shapes, and fits the pool's env.
+    """
+    try:
+        doc = fsutil.read_json(paths.deposit_json(i, m))
+    except (OSError, ValueError) as exc:
+        raise ValueError(f"metrics unreadable ({type(exc).__name__})") from None
+    if not isinstance(doc, dict):
+        raise ValueError("metrics are not a JSON object")
+    if doc.get("iteration") != i or doc.get("member") != m:
+        raise ValueError("metrics name another iteration or member")
+    ret = doc.get("eval_return")
+    if isinstance(ret, bool) or not isinstance(ret, (int, float)) or not math.isfinite(ret):
+        raise ValueError(f"eval_return is not a finite number ({ret!r})")
+    try:
+        data = fsutil.read_bytes(paths.deposit_npz(i, m))
+    except OSError as exc:
+        raise ValueError(f"agent unreadable ({exc.strerror or exc})") from None
+    if sha256(data) != doc.get("agent_sha256"):
+        raise ValueError("agent does not match the hash in its metrics")
+    try:
+        agent = Agent.from_bytes(data, source=member_name(m) + ".npz")
+    except AgentFileError as exc:
+        raise ValueError(str(exc)) from None
+    if like is not None and (agent.meta != like.meta):
+        raise ValueError("agent was made for another environment or policy shape")
+    return doc, agent
+
+
+def choose(candidates: list[tuple[int, float]]) -> tuple[int, float]:
+    """The winner among ``(member, eval_return)``: highest return, ties to the lowest member."""
+    if not candidates:
+        raise ValueError("no candidates")
+    return min(candidates, key=lambda c: (-c[1], c[0]))
+
+
+def select(paths: Paths, i: int, pool_size: int, like: Agent, members: set[int], reason: str,
+           previous: dict) -> dict:
+    """The selection of iteration ``i`` among the deposits of ``members`` (a pure function of files).
+
+    If no deposit is valid the previous selection's agent carries over.
+    """
+    considered, skipped = [], []
+    for m in range(pool_size):
+        if m not in members:
+            skipped.append({"member": m, "reason": "missing"})
+            continue
+        try:
+            doc, _ = read_deposit(paths, i, m, like)
+        except ValueError as exc:
+            skipped.append({"member": m, "reason": str(exc)})
+            continue
+        considered.append({"member": m, "eval_return": float(doc["eval_return"]),
+                           "agent_sha256": doc["agent_sha256"]})
+    out = {"iteration": i, "considered": [{"member": c["member"], "eval_return": c["eval_return"]}
+                                          for c in considered],
+           "skipped": skipped, "quorum_reason": reason}
+    if considered:
+        m, ret = choose([(c["member"], c["eval_return"]) for c in considered])
+        sha = next(c["agent_sha256"] for c in considered if c["member"] == m)
+        out |= {"member": m, "eval_return": ret, "agent": paths.rel(paths.deposit_npz(i, m)),
+                "agent_sha256": sha}
+    else:
+        out |= {"member": None, "eval_return": None, "agent": previous["agent"],
+                "agent_sha256": previous["agent_sha256"],
+                "carried_from": previous["iteration"]}
+    return out
+
+
+def publish_selection(paths: Paths, selection: dict, by: int) -> tuple[dict, bool]:
+    """Create ``selected.json`` unless it exists; return what is on disk and whether we wrote it."""
+    doc = selection | {"selected_by": by, "time": time.time()}
+    created = fsutil.create_exclusive(paths.selected(selection["iteration"]), fsutil.dumps(doc))
+    on_disk = read_selected(paths, selection["iteration"])
+    return (on_disk if on_disk is not None else doc), created
+
+
+def update_best(paths: Paths, selection: dict) -> bool:
+    """Replace ``best.npz`` if this selection beats the best so far (written by the selection's creator)."""
+    ret = selection.get("eval_return")
+    if ret is None:
+        return False
+    try:
+        best = fsutil.read_json(paths.best_json)
+        if isinstance(best, dict) and isinstance(best.get("eval_return"), (int, float)) \
+                and best["eval_return"] >= ret:
+            return False
+    except (OSError, ValueError):
+        pass
+    data = fsutil.read_bytes(paths.resolve(selection["agent"]))
+    fsutil.atomic_write(paths.best_npz, data)
+    fsutil.write_json(paths.best_json, {"iteration": selection["iteration"], "member": selection["member"],
+                                        "eval_return": ret, "agent": selection["agent"]})
+    return True
+
+
+def collect_garbage(paths: Paths, i: int) -> int:
+    """Remove non-selected agents and temp leftovers of iteration ``i``; keep every JSON."""
+    sel = read_selected(paths, i)
+    if sel is None:
+        return 0
+    keep = os.path.basename(sel.get("agent", ""))
+    removed = 0
+    d = paths.iteration(i)
+    for name in fsutil.listdir(d):
+        if (name.endswith(".npz") and name.startswith("member-") and name != keep) or fsutil.is_tmp(name):
+            try:
+                os.unlink(os.path.join(d, name))
+                removed += 1
+            except OSError:
+                pass
+    return removed
+
+
+def remove_own_temps(paths: Paths, i: int, m: int) -> int:
+    """Temp files a killed earlier run of member ``m`` left (they are never read)."""
+    removed = 0
+    prefix = "." + member_name(m)
+    for d in (paths.iteration(i), paths.members):
+        for name in fsutil.listdir(d):
+            if name.startswith(prefix) and fsutil.is_tmp(name):
+                try:
+                    os.unlink(os.path.join(d, name))
+                    removed += 1
+                except OSError:
+                    pass
+    return removed
+
+
+# ---------------------------------------------------------------- heartbeats
+HOST = socket.gethostname()
+
+
+def pid_alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    return True
+
+
+def read_heartbeat(paths: Paths, m: int) -> dict | None:
+    try:
+        doc = fsutil.read_json(paths.heartbeat(m))
+    except (OSError, ValueError):
+        return None
+    return doc if isinstance(doc, dict) else None
+
+
+class Heartbeat:
+    """This member's heartbeat: rewritten on every state change and every ``interval`` seconds.
+
+    ``beat`` increases on every write; observers judge liveness by whether the
+    file changes, not by comparing clocks across hosts.
+    """
+
+    def __init__(self, paths: Paths, member: int, interval: float, extra: dict):
+        self.paths, self.member, self.interval = paths, member, interval
+        self.doc = {"member": member, "pid": os.getpid(), "host": HOST, "beat": 0,
+                    "state": "starting", "iteration": None, **extra}
+        self._lock = threading.Lock()
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, name="heartbeat", daemon=True)
+
+    def start(self) -> Heartbeat:
+        self.write()
+        self._thread.start()
+        return self
+
+    def set(self, **fields) -> None:
+        with self._lock:
+            self.doc.update(fields)
+        self.write()
+
+    def write(self) -> None:
+        with self._lock:
+            self.doc["beat"] += 1
+            self.doc["time"] = time.time()
+            data = fsutil.dumps(self.doc)
+        try:
+            fsutil.atomic_write(self.paths.heartbeat(self.member), data, sync_dir=False)
+        except OSError as exc:
+            log.warning("heartbeat write failed: %s", exc)
+
+    def _run(self) -> None:
+        while not self._stop.wait(self.interval):
+            self.write()
+
+    def stop(self, state: str, **fields) -> None:
+        self._stop.set()
+        if self._thread.is_alive():
+            self._thread.join(timeout=5)
+        self.set(state=state, **fields)
+
+
+class Liveness:
+    """Judges other members' heartbeats from what this observer sees change.
+
+    A member is *stale* if its heartbeat file has not changed for ``timeout``
+    seconds of this observer's monotonic clock (a missing file counts as
+    unchanged), if it says it has finished, failed or stopped, or if it runs
+    on this host under a pid that no longer exists.
+    """
+
+    def __init__(self, paths: Paths, timeout: float):
+        self.paths, self.timeout = paths, timeout
+        self.seen: dict[int, tuple] = {}
+
+    def stale(self, m: int, iteration: int) -> str | None:
+        """Why member ``m`` is not coming to ``iteration``'s barrier, or None if it may."""
+        hb = read_heartbeat(self.paths, m)
+        now = time.monotonic()
+        key = None if hb is None else (hb.get("pid"), hb.get("host"), hb.get("beat"))
+        prev = self.seen.get(m)
+        if prev is None or prev[0] != key:
+            self.seen[m] = (key, now)
+            changed_at = now
+        else:
+            changed_at = prev[1]
+        if hb is not None:
+            if hb.get("state") in TERMINAL_STATES:
+                return f"member {m} {hb.get('state')}"
+            if hb.get("host") == HOST and isinstance(hb.get("pid"), int) and not pid_alive(hb["pid"]):
+                return f"member {m} process {hb['pid']} is gone"
+        if now - changed_at >= self.timeout:
+            return f"member {m} heartbeat unchanged for {now - changed_at:.0f}s"
+        return None
+
+
+# ---------------------------------------------------------------- barrier
+class BarrierTimeout(Exception):
+    pass
+
+
+@dataclass
+class BarrierResult:
+    selection: dict
+    created: bool
+    waited: float
+
+
+def barrier(paths: Paths, i: int, cfg: PoolConfig, me: int, like: Agent, quorum: int,
+            timeout: float, liveness: Liveness, poll_max: float = 0.01,
+            stop: threading.Event | None = None) -> BarrierResult:
+    """Wait for iteration ``i``'s deposits, then select (or adopt the selection already made).
+
+    Goes on when all ``pool_size`` deposits are present; or, with at least
+    ``quorum`` present, when every missing member is stale or ``timeout``
+    seconds have passed. Without a quorum after ``timeout`` it raises
+    :class:`BarrierTimeout`. Polls back off from 1 ms to ``poll_max``.
+    """
+    t0 = time.monotonic()
+    delay = 0.001
+    next_liveness = t0
+    reason = None
+    while True:
+        sel = read_selected(paths, i)
+        if sel is not None:
+            return BarrierResult(sel, False, time.monotonic() - t0)
+        have = present(paths, i, cfg.pool_size)
+        now = time.monotonic()
+        if len(have) == cfg.pool_size:
+            reason = "complete"
+            break
+        missing = sorted(set(range(cfg.pool_size)) - have)
+        if len(have) >= quorum and now >= next_liveness:
+            next_liveness = now + 0.25
+            why = [liveness.stale(m, i) for m in missing]
+            if all(why):
+                reason = "went on without stale members: " + "; ".join(why)
+                break
+        if now - t0 >= timeout:
+            if len(have) >= quorum:
+                reason = f"barrier timeout after {timeout:.0f}s; missing {missing}"
+                break
+            raise BarrierTimeout(
+                f"iteration {i}: only {len(have)} of {cfg.pool_size} deposits after {timeout:.0f}s "
+                f"(quorum {quorum}); restart to resume")
+        if stop is not None and stop.is_set():
+            raise KeyboardInterrupt
+        time.sleep(delay)
+        delay = min(delay * 2, poll_max)
+    if reason != "complete":
+        log.warning("iteration %d: %s", i, reason)
+    previous = read_selected(paths, i - 1)
+    selection = select(paths, i, cfg.pool_size, like, have, reason, previous)
+    for s in selection["skipped"]:
+        if s["reason"] != "missing":
+            log.warning("iteration %d: skipped member %d: %s", i, s["member"], s["reason"])
+    doc, created = publish_selection(paths, selection, me)
+    return BarrierResult(doc, created, time.monotonic() - t0)
+
+
+def json_dumps_line(obj) -> str:
+    return json.dumps(obj, sort_keys=True)

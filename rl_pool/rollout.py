@@ -1,0 +1,96 @@
+"""Episodes between gymnasium and NumPy: several envs stepped in lockstep.
+
+The policy forward pass and the Beta draws are batched over the envs still
+running, so their cost per env step shrinks with the batch while MuJoCo does
+the real work. Observations are recorded raw; since the normaliser is frozen
+during a rollout, the features the policy acted on are recomputed exactly
+afterwards in one vectorised pass (the same elementwise operations).
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import numpy as np
+
+from . import normalizer, policy
+
+
+class Batch(NamedTuple):
+    """A batch of episodes padded to ``T`` steps; ``mask`` is 1 on real steps."""
+
+    obs: np.ndarray  # [B, T, obs_dim] raw observations the actions were taken on
+    u: np.ndarray  # [B, T, act_dim] Beta samples in (0, 1)
+    rewards: np.ndarray  # [B, T]
+    mask: np.ndarray  # [B, T]
+    returns: np.ndarray  # [B] undiscounted episode returns
+    lengths: np.ndarray  # [B]
+
+    @property
+    def steps(self) -> int:
+        return int(self.lengths.sum())
+
+
+def run_episodes(envs, w, norm, low, high, seeds, max_steps: int,
+                 rng: np.random.Generator | None, deterministic: bool, record: bool = True):
+    """Run one episode in each of ``envs[:len(seeds)]`` in lockstep.
+
+    ``w``: policy weights ``[obs_dim + 1, 2 * act_dim]``; ``norm``: frozen
+    normaliser; ``seeds``: one reset seed per episode. Actions are Beta means if
+    ``deterministic``, else draws from ``rng``. Returns a :class:`Batch`
+    (arrays only when ``record``; otherwise ``obs``/``u``/``rewards``/``mask`` are None).
+    """
+    n = len(seeds)
+    if n > len(envs):
+        raise ValueError(f"{n} episodes need {n} envs, have {len(envs)}")
+    obs_dim = w.shape[0] - 1
+    act_dim = w.shape[1] // 2
+    mean, inv_std = normalizer.scale(norm)
+    w_x, w_b = w[:-1], w[-1]
+    span = high - low
+    clip = normalizer.CLIP
+
+    cur = np.empty((n, obs_dim))
+    for k in range(n):
+        o, _ = envs[k].reset(seed=int(seeds[k]))
+        cur[k] = o
+    if record:
+        obs_buf = np.zeros((n, max_steps, obs_dim))
+        u_buf = np.full((n, max_steps, act_dim), 0.5)
+        rew_buf = np.zeros((n, max_steps))
+        mask = np.zeros((n, max_steps))
+    returns = np.zeros(n)
+    lengths = np.zeros(n, dtype=np.int64)
+    active = np.arange(n)
+    all_active = True
+    step_fns = [env.step for env in envs[:n]]
+
+    for t in range(max_steps):
+        o_act = cur if all_active else cur[active]
+        x = np.clip((o_act - mean) * inv_std, -clip, clip)
+        ab = np.logaddexp(0.0, x @ w_x + w_b) + 1.0
+        a, b = ab[:, :act_dim], ab[:, act_dim:]
+        u = a / (a + b) if deterministic else policy.clip_unit(rng.beta(a, b))
+        actions = low + u * span
+        if record:
+            obs_buf[active, t] = o_act
+            u_buf[active, t] = u
+            mask[active, t] = 1.0
+        ended = []
+        for k, idx in enumerate(active):
+            o, r, terminated, _, _ = step_fns[idx](actions[k])
+            cur[idx] = o
+            returns[idx] += r
+            if record:
+                rew_buf[idx, t] = r
+            if terminated:
+                ended.append(k)
+        lengths[active] += 1
+        if ended:
+            active = np.delete(active, ended)
+            all_active = False
+            if active.size == 0:
+                break
+    if not record:
+        return Batch(None, None, None, None, returns, lengths)
+    return Batch(obs_buf, u_buf, rew_buf, mask, returns, lengths)

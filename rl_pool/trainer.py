@@ -1,0 +1,103 @@
+"""One iteration of one member: train for E episodes, then evaluate without updates.
+
+Random streams are derived from ``(root seed, member, iteration)`` with
+NumPy's ``SeedSequence``, so an iteration re-run after a crash draws exactly
+the same numbers. Evaluation seeds depend on ``(root seed, iteration)`` only:
+every member of an iteration is evaluated on the same episodes (common random
+numbers), so selection compares branches on equal terms.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+
+import numpy as np
+
+from . import learner, normalizer, returns
+from .agent import Agent
+from .config import PoolConfig
+from .rollout import run_episodes
+
+# Stream tags, so the same (seed, member, iteration) never feeds two purposes.
+_TRAIN_ENV, _TRAIN_ACT, _EVAL_ENV, _EVAL_ACT = 0, 1, 2, 3
+
+
+def _seq(*words: int) -> np.random.SeedSequence:
+    return np.random.SeedSequence([int(w) for w in words])
+
+
+def env_seeds(seq: np.random.SeedSequence, n: int) -> list[int]:
+    return [int(s) for s in seq.generate_state(n, dtype=np.uint32)]
+
+
+def train_streams(seed: int, member: int, iteration: int, n_episodes: int):
+    """``(env reset seeds, action generator)`` for a member's training in an iteration."""
+    seeds = env_seeds(_seq(seed, member, iteration, _TRAIN_ENV), n_episodes)
+    return seeds, np.random.Generator(np.random.PCG64(_seq(seed, member, iteration, _TRAIN_ACT)))
+
+
+def eval_streams(seed: int, iteration: int, n_episodes: int):
+    """The evaluation episodes of an iteration, shared by all members."""
+    seeds = env_seeds(_seq(seed, 2**31 - 1, iteration, _EVAL_ENV), n_episodes)
+    return seeds, np.random.Generator(np.random.PCG64(_seq(seed, 2**31 - 1, iteration, _EVAL_ACT)))
+
+
+@dataclass
+class TrainResult:
+    agent: Agent
+    steps: int
+    seconds: float
+    episode_returns: list[float]
+    grad_norms: list[float]
+
+
+@dataclass
+class EvalResult:
+    returns: list[float]
+    steps: int
+    seconds: float
+
+    @property
+    def mean(self) -> float:
+        return float(np.mean(self.returns))
+
+    def summary(self) -> dict:
+        r = np.asarray(self.returns)
+        return {"eval_return": float(r.mean()), "eval_std": float(r.std()),
+                "eval_min": float(r.min()), "eval_max": float(r.max()),
+                "eval_returns": [float(x) for x in r]}
+
+
+def train(agent: Agent, envs, cfg: PoolConfig, lr: float, member: int, iteration: int) -> TrainResult:
+    """REINFORCE on ``cfg.train_episodes`` episodes in batches of ``cfg.batch_episodes``."""
+    t0 = time.perf_counter()
+    seeds, rng = train_streams(cfg.seed, member, iteration, cfg.train_episodes)
+    low, high = agent.low, agent.high
+    w, norm = agent.w, agent.norm
+    opt = learner.OptState(agent.opt_m, agent.opt_v, agent.opt_t)
+    T = agent.meta.max_episode_steps
+    steps, ep_returns, gnorms = 0, [], []
+    B = cfg.batch_episodes
+    for k in range(cfg.updates_per_iteration):
+        batch = run_episodes(envs, w, norm, low, high, seeds[k * B:(k + 1) * B], T, rng,
+                             deterministic=False)
+        x = normalizer.normalize(norm, batch.obs)
+        adv = returns.advantages(batch.rewards, batch.mask, cfg.gamma, cfg.baseline)
+        w, opt, gnorm = learner.update(w, opt, x, batch.u, adv, batch.mask, lr, cfg.optimizer)
+        norm = normalizer.update(norm, batch.obs[batch.mask > 0])
+        steps += batch.steps
+        ep_returns.extend(float(r) for r in batch.returns)
+        gnorms.append(gnorm)
+    new = agent.evolve(w=w, norm=norm, opt_m=opt.m, opt_v=opt.v, opt_t=opt.t)
+    return TrainResult(new, steps, time.perf_counter() - t0, ep_returns, gnorms)
+
+
+def evaluate(agent: Agent, envs, cfg: PoolConfig, iteration: int) -> EvalResult:
+    """``cfg.eval_episodes`` episodes without updates on the iteration's shared seeds."""
+    t0 = time.perf_counter()
+    seeds, rng = eval_streams(cfg.seed, iteration, cfg.eval_episodes)
+    batch = run_episodes(envs, agent.w, agent.norm, agent.low, agent.high, seeds,
+                         agent.meta.max_episode_steps, rng,
+                         deterministic=cfg.eval_mode == "mean", record=False)
+    return EvalResult([float(r) for r in batch.returns], batch.steps, time.perf_counter() - t0)
