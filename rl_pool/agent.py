@@ -76,7 +76,7 @@ class AgentMeta:
         if len(meta.action_low) != meta.act_dim or len(meta.action_high) != meta.act_dim:
             raise AgentFileError("agent action bounds do not match its action dimension")
         if not all(math.isfinite(lo) and math.isfinite(hi) and hi > lo
-                   for lo, hi in zip(meta.action_low, meta.action_high)):
+                   for lo, hi in zip(meta.action_low, meta.action_high, strict=True)):
             raise AgentFileError("agent action bounds are not finite low < high")
         if meta.obs_dim <= 0 or meta.act_dim <= 0 or meta.max_episode_steps <= 0:
             raise AgentFileError("agent dimensions must be positive")

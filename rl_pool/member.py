@@ -53,6 +53,14 @@ def make_initial(cfg: PoolConfig):
     return Agent.initial(meta), cfg
 
 
+def check_arguments(paths: pool.Paths, requested: dict, members: list[MemberConfig]) -> None:
+    """Refuse bad arguments before anything is created or changed on disk."""
+    saved = pool.read_config(paths) if os.path.exists(paths.pool_json) else None
+    cfg = PoolConfig.merged(requested, saved, where=f"pool {paths.root}")
+    for mc in members:
+        mc.validate(cfg.pool_size)
+
+
 def _setup_logging(paths: pool.Paths, member: int, quiet: bool) -> None:
     fmt = logging.Formatter(f"%(asctime)s {pool.member_name(member)} %(levelname)s %(message)s")
     log.setLevel(logging.INFO)
@@ -87,8 +95,8 @@ def _check_not_running(paths: pool.Paths, member: int, stale_after: float) -> No
 def run(pool_dir: str, requested: dict, mc: MemberConfig, quiet: bool = False) -> int:
     """Run member ``mc.member`` until the pool's iteration ``mc.iterations`` is selected."""
     paths = pool.Paths(pool_dir)
+    check_arguments(paths, requested, [mc])
     cfg = pool.open_pool(paths, requested, make_initial)
-    mc.validate(cfg.pool_size)
     me = mc.member
     _check_not_running(paths, me, mc.heartbeat_timeout)
     _setup_logging(paths, me, quiet)

@@ -126,27 +126,30 @@ def open_pool(paths: Paths, requested: dict, initial_agent, lock_timeout: float 
 
     if os.path.exists(paths.root) and not os.path.isdir(paths.root):
         raise UsageError(f"{paths.root} exists and is not a directory")
-    if os.path.isdir(paths.root) and not os.path.exists(paths.pool_json):
+    if os.path.exists(paths.pool_json):
+        cfg = PoolConfig.merged(requested, read_config(paths), where=f"pool {paths.root}")
+        _ensure_initial(paths, cfg, initial_agent)
+        return cfg
+    if os.path.isdir(paths.root):
         foreign = [n for n in fsutil.listdir(paths.root)
                    if n not in ("iterations", "members", "logs", ".init.lock") and not fsutil.is_tmp(n)]
         if foreign:
             raise UsageError(
                 f"{paths.root} is not empty and is not an rl-pool pool (found {foreign[0]!r}); use a new --pool-dir")
+    # Check everything (arguments, environment) before anything is written.
+    cfg = PoolConfig.merged(requested, None)
+    _, cfg = initial_agent(cfg)
     for d in (paths.root, paths.iterations, paths.members, paths.logs):
         os.makedirs(d, exist_ok=True)
-    if os.path.exists(paths.pool_json):
-        cfg = PoolConfig.merged(requested, read_config(paths), where=f"pool {paths.root}")
-        _ensure_initial(paths, cfg, initial_agent)
-        return cfg
     try:
         with FileLock(paths.lock, timeout=lock_timeout):
             if not os.path.exists(paths.pool_json):
-                cfg = PoolConfig.merged(requested, None)
-                agent, cfg = initial_agent(cfg)
                 doc = cfg.to_json() | {"created": time.time()}
                 fsutil.create_exclusive(paths.pool_json, fsutil.dumps(doc))
     except Timeout:
+        # The lock only saves duplicate work; the atomic create below is what counts.
         log.warning("init lock %s busy for %.0fs; going on without it", paths.lock, lock_timeout)
+        fsutil.create_exclusive(paths.pool_json, fsutil.dumps(cfg.to_json() | {"created": time.time()}))
     cfg = PoolConfig.merged(requested, read_config(paths), where=f"pool {paths.root}")
     _ensure_initial(paths, cfg, initial_agent)
     return cfg

@@ -1,0 +1,168 @@
+"""``rl-pool launch``: N members as local processes, live progress, Ctrl-C forwarded.
+
+Each member is a fresh interpreter (``python -m rl_pool train``), never a fork
+of the launcher: JAX and the BLAS libraries start threads that a fork would
+copy in a locked state. Children get the one-thread caps in their environment
+and their own session, so the launcher alone decides when they get a signal.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+
+from . import pool, status
+from .config import MemberConfig
+from .errors import UsageError
+from .threads import capped_environ
+
+DEFAULT_RATIO = 0.1  # the first member's learning rate relative to the others'
+
+
+def default_learning_rates(pool_size: int, base: float) -> list[float]:
+    """The first member at ``base / 10`` (a guard against steps that are too large), the rest at ``base``."""
+    if pool_size == 1:
+        return [base]
+    return [base * DEFAULT_RATIO] + [base] * (pool_size - 1)
+
+
+def _flag(name: str) -> str:
+    return "--" + name.replace("_", "-")
+
+
+def _args(opts: dict) -> list[str]:
+    out = []
+    for k, v in opts.items():
+        out += [_flag(k), json.dumps(v) if isinstance(v, dict) else str(v)]
+    return out
+
+
+def launch(pool_dir: str, requested: dict, member_opts: dict, learning_rates: list[float] | None,
+           base_lr: float | None, quiet: bool = False, print_every: float = 5.0) -> int:
+    from .config import PoolConfig
+    from .member import check_arguments, make_initial
+
+    paths = pool.Paths(pool_dir)
+    saved = pool.read_config(paths) if os.path.exists(paths.pool_json) else None
+    n = PoolConfig.merged(requested, saved, where=f"pool {paths.root}").pool_size
+    base = base_lr if base_lr is not None else MemberConfig.learning_rate
+    lrs = learning_rates if learning_rates is not None else default_learning_rates(n, base)
+    if len(lrs) != n:
+        raise UsageError(f"--learning-rates has {len(lrs)} values for a pool of {n}")
+    members = [MemberConfig(**(member_opts | {"member": m, "learning_rate": lr})) for m, lr in enumerate(lrs)]
+    check_arguments(paths, requested, members)
+    cfg = pool.open_pool(paths, requested, make_initial)  # refuses a mismatched pool before any spawn
+
+    procs = []
+    env = capped_environ()
+    for m, lr in enumerate(lrs):
+        cmd = [sys.executable, "-m", "rl_pool", "train", "--pool-dir", paths.root, "--member", str(m),
+               "--learning-rate", repr(lr), "--quiet", *_args(requested | {"pool_size": n}),
+               *_args(member_opts)]
+        with open(os.path.join(paths.logs, pool.member_name(m) + ".out"), "ab") as out:
+            procs.append(subprocess.Popen(cmd, stdout=out, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
+                                          env=env, start_new_session=True))
+    print(f"launched {n} members on {cfg.env} in {paths.root}; learning rates "
+          + ", ".join(f"m{m}={lr:g}" for m, lr in enumerate(lrs)), flush=True)
+
+    interrupted = False
+    try:
+        codes = _watch(paths, procs, n, quiet, print_every)
+    except KeyboardInterrupt:
+        interrupted = True
+        print("\nstopping members (Ctrl-C again is not needed; deposits on disk are safe)...",
+              file=sys.stderr, flush=True)
+        codes = _stop_all(procs, signal.SIGINT)
+    st = status.status(paths.root)
+    b = st["best"]
+    print(f"iterations completed {st['iterations_completed']}; best "
+          + ("none" if b is None else f"{b['eval_return']:.2f} (iteration {b['iteration']}, member {b['member']})"),
+          flush=True)
+    if interrupted:
+        return 130
+    failed = [(m, c) for m, c in enumerate(codes) if c != 0]
+    for m, c in failed:
+        print(f"member {m} failed (exit {c}): {_why(paths, m)}", file=sys.stderr)
+    return 1 if failed else 0
+
+
+def _watch(paths, procs, n, quiet, print_every) -> list[int]:
+    shown = pool.last_selected(paths)
+    last_print = 0.0
+    while True:
+        codes = [p.poll() for p in procs]
+        if any(c not in (None, 0) for c in codes) and any(c is None for c in codes):
+            bad = next(m for m, c in enumerate(codes) if c not in (None, 0))
+            print(f"member {bad} exited with {codes[bad]}: {_why(paths, bad)}; stopping the others",
+                  file=sys.stderr, flush=True)
+            return _stop_all(procs, signal.SIGINT, keep=codes)
+        nxt = shown + 1
+        while pool.read_selected(paths, nxt) is not None:
+            shown, nxt = nxt, nxt + 1
+        now = time.monotonic()
+        done = all(c is not None for c in codes)
+        if shown >= 1 and (done or now - last_print >= print_every) and shown != getattr(_watch, "_printed", None):
+            print(_progress_line(paths, shown, n), flush=True)
+            _watch._printed = shown
+            last_print = now
+        if done:
+            return codes
+        time.sleep(0.2)
+
+
+def _progress_line(paths, i, n) -> str:
+    sel = pool.read_selected(paths, i) or {}
+    best = None
+    try:
+        best = pool.fsutil.read_json(paths.best_json)
+    except (OSError, ValueError):
+        pass
+    parts = [f"iter {i:>5}  selected m{sel.get('member')} {_f(sel.get('eval_return'))}"]
+    if isinstance(best, dict):
+        parts.append(f"best {_f(best.get('eval_return'))} (iter {best.get('iteration')})")
+    ms = []
+    for m in status.members(paths, n):
+        ms.append(f"m{m['member']} {m['state']} {_f(m.get('last_return'))}")
+    return "  |  ".join([*parts, "  ".join(ms)])
+
+
+def _f(x) -> str:
+    return "-" if not isinstance(x, (int, float)) else f"{x:.2f}"
+
+
+def _stop_all(procs, sig, keep=None, grace: float = 30.0) -> list[int]:
+    for p in procs:
+        if p.poll() is None:
+            try:
+                p.send_signal(sig)
+            except ProcessLookupError:
+                pass
+    deadline = time.monotonic() + grace
+    for p in procs:
+        try:
+            p.wait(timeout=max(0.1, deadline - time.monotonic()))
+        except subprocess.TimeoutExpired:
+            p.kill()
+            p.wait()
+    codes = [p.returncode for p in procs]
+    if keep is not None:  # a member that failed on its own keeps its own exit code
+        codes = [c if k is None else k for k, c in zip(keep, codes, strict=True)]
+    return codes
+
+
+def _why(paths, m) -> str:
+    hb = pool.read_heartbeat(paths, m) or {}
+    if hb.get("error"):
+        return str(hb["error"])
+    try:
+        with open(os.path.join(paths.logs, pool.member_name(m) + ".out"), "rb") as fh:
+            fh.seek(0, os.SEEK_END)
+            fh.seek(max(0, fh.tell() - 2000))
+            tail = fh.read().decode(errors="replace").strip().splitlines()
+        return tail[-1] if tail else "no output"
+    except OSError:
+        return "no output"

@@ -1,0 +1,34 @@
+import os
+import subprocess
+import sys
+
+import pytest
+
+from rl_pool.threads import cap_threads
+
+cap_threads()
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+
+#: Short episodes keep real Swimmer-v5 runs to a second or two per process.
+SHORT = ["--max-episode-steps", "60", "--train-episodes", "4", "--batch-episodes", "2",
+         "--eval-episodes", "2"]
+
+
+def rl_pool(*args, timeout=180, check=None, **kw) -> subprocess.CompletedProcess:
+    """Run the real CLI in a fresh interpreter."""
+    proc = subprocess.run([sys.executable, "-m", "rl_pool", *map(str, args)], capture_output=True,
+                          text=True, timeout=timeout, cwd=kw.pop("cwd", ROOT), **kw)
+    if check is not None:
+        assert proc.returncode == check, f"exit {proc.returncode}\nstdout:\n{proc.stdout}\nstderr:\n{proc.stderr}"
+    return proc
+
+
+def spawn(*args, **kw) -> subprocess.Popen:
+    return subprocess.Popen([sys.executable, "-m", "rl_pool", *map(str, args)], stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True, cwd=ROOT, **kw)
+
+
+@pytest.fixture
+def cli():
+    return rl_pool

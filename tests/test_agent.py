@@ -1,0 +1,109 @@
+"""Agent files: round trip, the public API, and refusal of anything not an agent."""
+
+import io
+import json
+
+import numpy as np
+import pytest
+import scipy.stats
+
+from rl_pool import Agent, envs
+from rl_pool.errors import AgentFileError, EnvError
+
+from .helpers import META, Evil, agent
+
+
+def test_round_trip_is_exact(tmp_path):
+    a = agent(1)
+    a = a.evolve(opt_m=a.w * 2, opt_v=a.w**2, opt_t=7.0)
+    path = tmp_path / "a.npz"
+    a.save(path)
+    b = Agent.load(path)
+    assert b.meta == a.meta
+    for x, y in [(a.w, b.w), (a.norm.mean, b.norm.mean), (a.norm.m2, b.norm.m2), (a.opt_m, b.opt_m),
+                 (a.opt_v, b.opt_v)]:
+        np.testing.assert_array_equal(x, y)
+    assert (b.norm.count, b.opt_t) == (a.norm.count, a.opt_t)
+    assert a.to_bytes() == b.to_bytes()
+
+
+def test_api_shapes_and_bounds():
+    a = agent(2)
+    obs = np.linspace(-1, 1, 8)
+    alpha, beta = a.beta_params(obs)
+    assert alpha.shape == beta.shape == (2,) and alpha.min() >= 1
+    act = a.act(obs)
+    np.testing.assert_allclose(act, -1 + 2 * alpha / (alpha + beta))
+    rng = np.random.default_rng(0)
+    samples = np.array([a.act(obs, rng=rng, deterministic=False) for _ in range(200)])
+    assert samples.min() >= -1 and samples.max() <= 1
+
+
+def test_log_prob_in_env_units_includes_the_jacobian():
+    a = agent(3).evolve(meta=META.__class__(**{**META.__dict__, "action_low": (-2.0, 0.0),
+                                                 "action_high": (2.0, 0.5)}))
+    obs = np.arange(8.0) / 10
+    action = np.array([0.7, 0.1])
+    alpha, beta = a.beta_params(obs)
+    u = (action - a.low) / (a.high - a.low)
+    want = sum(scipy.stats.beta.logpdf(u[j], alpha[j], beta[j]) - np.log(a.high[j] - a.low[j]) for j in range(2))
+    assert a.log_prob(obs, action) == pytest.approx(want, rel=1e-10)
+
+
+def test_log_prob_at_action_bounds_is_finite():
+    a = agent(4)
+    assert np.isfinite(a.log_prob(np.zeros(8), np.array([-1.0, 1.0])))
+
+
+def _npz(**arrays) -> bytes:
+    buf = io.BytesIO()
+    np.savez(buf, **arrays)
+    return buf.getvalue()
+
+
+def _arrays(a):
+    with np.load(io.BytesIO(a.to_bytes()), allow_pickle=False) as z:
+        return {k: z[k] for k in z.files}
+
+
+def test_pickled_object_is_refused_and_never_run(tmp_path):
+    marker = tmp_path / "ran"
+    arrays = _arrays(agent()) | {"w": np.array([Evil(marker)], dtype=object)}
+    with pytest.raises(AgentFileError, match="unreadable"):
+        Agent.from_bytes(_npz(**arrays))
+    assert not marker.exists()
+
+
+@pytest.mark.parametrize("change, match", [
+    ({"w": np.zeros((3, 3))}, "shape"),
+    ({"obs_mean": np.full(8, np.nan)}, "non-finite"),
+    ({"meta": np.array("{not json")}, "JSON"),
+    ({"meta": np.array(json.dumps({"format": "something-else"}))}, "not an rl-pool agent"),
+])
+def test_inconsistent_files_are_refused(change, match):
+    with pytest.raises(AgentFileError, match=match):
+        Agent.from_bytes(_npz(**(_arrays(agent()) | change)))
+
+
+def test_garbage_and_missing_files(tmp_path):
+    with pytest.raises(AgentFileError, match="unreadable"):
+        Agent.from_bytes(b"PK\x03\x04 definitely not a zip")
+    with pytest.raises(AgentFileError, match="missing"):
+        Agent.from_bytes(_npz(x=np.zeros(3)))
+    with pytest.raises(AgentFileError, match="cannot read"):
+        Agent.load(tmp_path / "nope.npz")
+
+
+def test_unbounded_or_discrete_action_spaces_are_refused():
+    import gymnasium as gym
+
+    class Unbounded(gym.Env):
+        observation_space = gym.spaces.Box(-1, 1, (3,))
+        action_space = gym.spaces.Box(-np.inf, np.inf, (2,))
+
+    with pytest.raises(EnvError, match="unbounded"):
+        envs.check("Unbounded-v0", Unbounded())
+    with pytest.raises(EnvError, match="Discrete"):
+        envs.make("CartPole-v1")
+    with pytest.raises(EnvError, match="unknown"):
+        envs.make("NoSuchEnv-v9")

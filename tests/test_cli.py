@@ -1,0 +1,132 @@
+"""The real CLI on real Swimmer-v5 (short episodes): pool files, status, bad input."""
+
+import json
+import os
+
+import numpy as np
+import pytest
+
+from rl_pool import Agent
+
+from .conftest import SHORT, rl_pool
+
+
+def _tree(root):
+    out = {}
+    for dp, _, fs in os.walk(root):
+        for f in fs:
+            p = os.path.join(dp, f)
+            out[os.path.relpath(p, root)] = open(p, "rb").read()
+    return out
+
+
+@pytest.fixture(scope="module")
+def single_pool(tmp_path_factory):
+    d = tmp_path_factory.mktemp("single") / "pool"
+    rl_pool("train", "--pool-dir", d, "--pool-size", 1, "--iterations", 3, *SHORT, "--quiet", check=0)
+    return d
+
+
+def test_single_member_run_writes_the_pool_files(single_pool):
+    d = single_pool
+    for rel in ["pool.json", "best.npz", "iterations/000000/initial.npz", "members/member-000.json",
+                "logs/member-000.log"]:
+        assert (d / rel).exists(), rel
+    for i in (1, 2, 3):
+        for name in ["member-000.npz", "member-000.json", "member-000.wait.json", "selected.json"]:
+            assert (d / f"iterations/{i:06d}" / name).exists()
+    hb = json.loads((d / "members/member-000.json").read_text())
+    assert hb["state"] == "finished"
+    best = Agent.load(d / "best.npz")
+    assert best.meta.env == "Swimmer-v5" and best.meta.max_episode_steps == 60
+    assert best.norm.count == 3 * 4 * 60  # every training observation, none from evaluation
+
+
+def test_status_json_has_the_contract_keys(single_pool):
+    st = json.loads(rl_pool("status", single_pool, "--json", check=0).stdout)
+    assert st["pool_size"] == 1 and st["env"] == "Swimmer-v5" and st["iterations_completed"] == 3
+    assert [h["iteration"] for h in st["history"]] == [1, 2, 3]
+    rets = [h["eval_return"] for h in st["history"]]
+    assert st["best"]["eval_return"] == max(rets)
+    assert st["best"]["iteration"] == 1 + int(np.argmax(rets))
+    for h in st["history"]:
+        (m,) = h["members"]
+        assert h["selected_member"] == 0 and m["eval_return"] == h["eval_return"]
+        assert m["learning_rate"] == 0.01 and m["train_steps"] == 4 * 60
+        assert m["train_seconds"] > 0 and m["eval_seconds"] > 0 and m["wait_seconds"] >= 0
+    table = rl_pool("status", single_pool, check=0).stdout
+    assert "best:" in table and "finished" in table
+
+
+def test_rerun_on_finished_pool_exits_at_once_and_larger_target_continues(single_pool, tmp_path):
+    before = _tree(single_pool)
+    rl_pool("train", "--pool-dir", single_pool, "--iterations", 2, "--quiet", check=0)
+    after = _tree(single_pool)
+    assert {k for k in after if not k.startswith(("logs", "members"))} == \
+        {k for k in before if not k.startswith(("logs", "members"))}
+
+
+def test_status_before_any_iteration_has_null_best(tmp_path):
+    d = tmp_path / "p"
+    # A pool whose only member has not finished an iteration: create it and stop at once.
+    rl_pool("train", "--pool-dir", d, "--pool-size", 2, "--member", 0, "--iterations", 1, *SHORT,
+            "--barrier-timeout", 0.5, "--quiet", check=3)
+    st = json.loads(rl_pool("status", d, "--json", check=0).stdout)
+    assert st["best"] is None and st["iterations_completed"] == 0 and st["history"] == []
+
+
+BAD = [
+    (["--env", "NoSuchEnv-v0"], "NoSuchEnv-v0"),
+    (["--env", "CartPole-v1"], "action space"),
+    (["--pool-size", 2, "--member", 5], "--member must be in 0..1"),
+    (["--train-episodes", 0], "--train-episodes must be a positive"),
+    (["--eval-episodes", -1], "--eval-episodes must be a positive"),
+    (["--train-episodes", 5, "--batch-episodes", 2], "multiple of"),
+    (["--gamma", 1.5], "--gamma"),
+    (["--env-kwargs", "[1, 2]"], "JSON object"),
+    (["--learning-rate", "fast"], "invalid float"),
+]
+
+
+@pytest.mark.parametrize("args, says", BAD)
+def test_bad_train_arguments_one_line_exit_2_nothing_created(tmp_path, args, says):
+    d = tmp_path / "p"
+    proc = rl_pool("train", "--pool-dir", d, *SHORT, *args)
+    assert proc.returncode == 2, proc.stderr
+    lines = proc.stderr.strip().splitlines()
+    assert len(lines) == 1 and says in lines[0], proc.stderr
+    assert "Traceback" not in proc.stderr
+    assert not d.exists()
+
+
+def test_existing_pool_with_other_settings_is_refused_untouched(single_pool):
+    before = _tree(single_pool)
+    for args, says in [(["--pool-size", 3], "--pool-size 1"), (["--env", "Hopper-v5"], "--env Swimmer-v5"),
+                       (["--gamma", 0.9], "--gamma 1.0")]:
+        proc = rl_pool("train", "--pool-dir", single_pool, *args, "--iterations", 5)
+        assert proc.returncode == 2 and len(proc.stderr.strip().splitlines()) == 1, proc.stderr
+        assert says in proc.stderr
+    assert _tree(single_pool) == before
+
+
+@pytest.mark.parametrize("setup, says", [
+    (lambda d: None, "no pool directory"),
+    (lambda d: (d.mkdir(), (d / "x.txt").write_text("hi")), "not an rl-pool pool"),
+    (lambda d: (d.mkdir(), (d / "pool.json").write_text("[1, 2")), "not a valid rl-pool pool config"),
+])
+def test_status_on_missing_or_foreign_directory(tmp_path, setup, says):
+    d = tmp_path / "d"
+    setup(d)
+    for args in (["status", d], ["status", d, "--json"], ["plot", d]):
+        proc = rl_pool(*args)
+        assert proc.returncode == 2 and "Traceback" not in proc.stderr
+        assert len(proc.stderr.strip().splitlines()) == 1 and says in proc.stderr
+
+
+def test_train_refuses_foreign_directory_untouched(tmp_path):
+    d = tmp_path / "d"
+    d.mkdir()
+    (d / "results.csv").write_text("precious")
+    proc = rl_pool("train", "--pool-dir", d, *SHORT)
+    assert proc.returncode == 2 and "not an rl-pool pool" in proc.stderr
+    assert os.listdir(d) == ["results.csv"]

@@ -1,0 +1,209 @@
+"""The shared-directory protocol on tmp_path: deposits, selection, hostile files, init, GC."""
+
+import io
+import json
+import os
+
+import numpy as np
+import pytest
+
+from rl_pool import fsutil, pool
+from rl_pool.errors import UsageError
+
+from .helpers import Evil, agent, fake_initial, make_pool
+
+
+def _deposit(paths, i, m, ret, seed=None):
+    return pool.deposit(paths, i, m, agent(m if seed is None else seed), {"eval_return": ret})
+
+
+def _like(paths):
+    return pool.load_selected_agent(paths, 0)
+
+
+def test_init_writes_config_initial_and_selection_zero(tmp_path):
+    paths, cfg = make_pool(tmp_path / "p")
+    assert cfg.pool_size == 2 and pool.last_selected(paths) == 0
+    sel = pool.read_selected(paths, 0)
+    assert sel["agent"] == "iterations/000000/initial.npz"
+    assert pool.load_selected_agent(paths, 0).w.shape == (9, 4)
+    saved = json.loads(open(paths.pool_json).read())
+    assert saved["protocol"] == 1 and saved["pool_size"] == 2
+
+
+def test_reopening_with_other_settings_is_refused_and_changes_nothing(tmp_path):
+    paths, _ = make_pool(tmp_path / "p")
+    before = {p: open(os.path.join(dp, p), "rb").read() for dp, _, fs in os.walk(paths.root) for p in fs}
+    with pytest.raises(UsageError, match="--pool-size 2"):
+        make_pool(tmp_path / "p", pool_size=3)
+    with pytest.raises(UsageError, match="--env Swimmer-v5"):
+        make_pool(tmp_path / "p", env="Hopper-v5")
+    after = {p: open(os.path.join(dp, p), "rb").read() for dp, _, fs in os.walk(paths.root) for p in fs}
+    assert before == after
+    # Unset options take the pool's values.
+    cfg = pool.open_pool(paths, {}, fake_initial)
+    assert cfg.pool_size == 2
+
+
+def test_foreign_directories_are_refused(tmp_path):
+    (tmp_path / "d").mkdir()
+    (tmp_path / "d" / "thesis.tex").write_text("x")
+    with pytest.raises(UsageError, match="not an rl-pool pool"):
+        make_pool(tmp_path / "d")
+    (tmp_path / "e").mkdir()
+    (tmp_path / "e" / "pool.json").write_text("{garbage")
+    with pytest.raises(UsageError, match="not a valid"):
+        pool.read_config(pool.Paths(tmp_path / "e"))
+
+
+def test_choose_highest_return_ties_to_lowest_member():
+    assert pool.choose([(2, 5.0), (0, 3.0), (1, 5.0)]) == (1, 5.0)
+    assert pool.choose([(3, -1.0)]) == (3, -1.0)
+    with pytest.raises(ValueError):
+        pool.choose([])
+
+
+def test_selection_is_argmax_over_valid_deposits(tmp_path):
+    paths, cfg = make_pool(tmp_path / "p", pool_size=3)
+    _deposit(paths, 1, 0, 10.0)
+    _deposit(paths, 1, 1, 12.5)
+    _deposit(paths, 1, 2, 12.5)
+    have = pool.present(paths, 1, 3)
+    sel = pool.select(paths, 1, 3, _like(paths), have, "complete", pool.read_selected(paths, 0))
+    assert sel["member"] == 1 and sel["eval_return"] == 12.5
+    assert [c["member"] for c in sel["considered"]] == [0, 1, 2] and sel["skipped"] == []
+    assert pool.load_selected_agent  # selection is loadable once published:
+    doc, created = pool.publish_selection(paths, sel, by=0)
+    assert created and pool.load_selected_agent(paths, 1).to_bytes() == agent(1).to_bytes()
+
+
+def test_stray_files_are_ignored_and_temp_files_never_count(tmp_path):
+    paths, _ = make_pool(tmp_path / "p", pool_size=2)
+    d = paths.iteration(1)
+    os.makedirs(d)
+    for name in ["member-007.json", "member-1.json", "notes.txt", "member-000.json.bak",
+                 ".member-001.json.tmp-host-1-abc", "member-001.wait.json"]:
+        open(os.path.join(d, name), "w").write("{}")
+    assert pool.present(paths, 1, 2) == set()
+    _deposit(paths, 1, 0, 1.0)
+    assert pool.present(paths, 1, 2) == {0}
+
+
+def test_hostile_and_broken_deposits_are_skipped_with_reasons(tmp_path):
+    paths, _ = make_pool(tmp_path / "p", pool_size=4)
+    marker = tmp_path / "code-ran"
+    _deposit(paths, 1, 0, 3.0)
+    # 1: a pickled object inside the .npz claiming a huge return
+    with np.load(io.BytesIO(agent().to_bytes())) as z:
+        arrays = {k: z[k] for k in z.files}
+    buf = io.BytesIO()
+    np.savez(buf, **(arrays | {"w": np.array([Evil(marker)], dtype=object)}))
+    data = buf.getvalue()
+    open(paths.deposit_npz(1, 1), "wb").write(data)
+    fsutil.write_json(paths.deposit_json(1, 1), {"iteration": 1, "member": 1, "eval_return": 1e9,
+                                                 "agent_sha256": pool.sha256(data)})
+    # 2: garbage JSON
+    open(paths.deposit_json(1, 2), "w").write("{\"eval_return\": 1e99, oops")
+    # 3: a valid agent whose JSON claims NaN
+    _deposit(paths, 1, 3, 1.0)
+    doc = json.loads(open(paths.deposit_json(1, 3)).read())
+    open(paths.deposit_json(1, 3), "w").write(json.dumps(doc | {"eval_return": float("nan")}))
+    sel = pool.select(paths, 1, 4, _like(paths), pool.present(paths, 1, 4), "complete",
+                      pool.read_selected(paths, 0))
+    assert sel["member"] == 0
+    reasons = {s["member"]: s["reason"] for s in sel["skipped"]}
+    assert set(reasons) == {1, 2, 3}
+    assert "unreadable agent" in reasons[1] and "unreadable" in reasons[2] and "finite" in reasons[3]
+    assert not marker.exists()
+
+
+def test_swapped_agent_or_other_env_is_skipped(tmp_path):
+    paths, _ = make_pool(tmp_path / "p", pool_size=2)
+    _deposit(paths, 1, 0, 3.0)
+    _deposit(paths, 1, 1, 5.0)
+    open(paths.deposit_npz(1, 1), "wb").write(agent(9).to_bytes())  # not the agent its JSON hashed
+    sel = pool.select(paths, 1, 2, _like(paths), {0, 1}, "complete", pool.read_selected(paths, 0))
+    assert sel["member"] == 0 and "hash" in sel["skipped"][0]["reason"]
+
+
+def test_no_valid_deposit_carries_the_previous_agent_over(tmp_path):
+    paths, _ = make_pool(tmp_path / "p", pool_size=2)
+    open(os.path.join(paths.iteration(0), "..", "x"), "w").close()
+    os.makedirs(paths.iteration(1))
+    open(paths.deposit_json(1, 0), "w").write("nope")
+    sel = pool.select(paths, 1, 2, _like(paths), {0}, "timeout", pool.read_selected(paths, 0))
+    assert sel["member"] is None and sel["carried_from"] == 0
+    pool.publish_selection(paths, sel, by=0)
+    assert pool.load_selected_agent(paths, 1).to_bytes() == pool.load_selected_agent(paths, 0).to_bytes()
+
+
+def test_first_selection_written_wins(tmp_path):
+    paths, _ = make_pool(tmp_path / "p", pool_size=2)
+    _deposit(paths, 1, 0, 1.0)
+    prev = pool.read_selected(paths, 0)
+    alone = pool.select(paths, 1, 2, _like(paths), {0}, "timeout", prev)
+    doc1, c1 = pool.publish_selection(paths, alone, by=0)
+    _deposit(paths, 1, 1, 99.0)
+    full = pool.select(paths, 1, 2, _like(paths), {0, 1}, "complete", prev)
+    doc2, c2 = pool.publish_selection(paths, full, by=1)
+    assert (c1, c2) == (True, False)
+    assert doc2["member"] == doc1["member"] == 0
+
+
+def test_selection_pointing_outside_the_pool_is_refused(tmp_path):
+    paths, _ = make_pool(tmp_path / "p", pool_size=1)
+    with pytest.raises(ValueError, match="outside"):
+        paths.resolve("../../etc/passwd")
+
+
+def test_gc_keeps_selected_agent_and_all_json(tmp_path):
+    paths, _ = make_pool(tmp_path / "p", pool_size=3)
+    for m, r in enumerate([1.0, 7.0, 2.0]):
+        _deposit(paths, 1, m, r)
+    open(os.path.join(paths.iteration(1), ".member-002.npz.tmp-h-1-x"), "w").close()
+    sel = pool.select(paths, 1, 3, _like(paths), {0, 1, 2}, "complete", pool.read_selected(paths, 0))
+    pool.publish_selection(paths, sel, by=0)
+    assert pool.collect_garbage(paths, 1) == 3
+    names = sorted(os.listdir(paths.iteration(1)))
+    assert names == ["member-000.json", "member-001.json", "member-001.npz", "member-002.json",
+                     "selected.json"]
+
+
+def test_update_best_only_on_improvement(tmp_path):
+    paths, _ = make_pool(tmp_path / "p", pool_size=1)
+    for i, r in [(1, 5.0), (2, 3.0), (3, 8.0)]:
+        _deposit(paths, i, 0, r, seed=i)
+        sel = pool.select(paths, i, 1, _like(paths), {0}, "complete", pool.read_selected(paths, i - 1))
+        pool.publish_selection(paths, sel, by=0)
+        pool.update_best(paths, sel)
+        best = json.loads(open(paths.best_json).read())
+        assert best["iteration"] == {1: 1, 2: 1, 3: 3}[i]
+    assert open(paths.best_npz, "rb").read() == agent(3).to_bytes()
+
+
+def test_atomic_write_leaves_no_temp_and_create_exclusive_is_once(tmp_path):
+    p = tmp_path / "f.json"
+    fsutil.atomic_write(p, b"one")
+    fsutil.atomic_write(p, b"two")
+    assert p.read_bytes() == b"two" and os.listdir(tmp_path) == ["f.json"]
+    assert fsutil.create_exclusive(tmp_path / "g", b"a") is True
+    assert fsutil.create_exclusive(tmp_path / "g", b"b") is False
+    assert (tmp_path / "g").read_bytes() == b"a" and sorted(os.listdir(tmp_path)) == ["f.json", "g"]
+
+
+def test_liveness_judges_change_not_clocks(tmp_path):
+    paths, _ = make_pool(tmp_path / "p", pool_size=2)
+    live = pool.Liveness(paths, timeout=0.2)
+    assert live.stale(1, 1) is None  # never seen: not stale until the timeout passes
+    import time
+
+    time.sleep(0.25)
+    assert "unchanged" in live.stale(1, 1)
+    # A heartbeat from another host with a wildly wrong clock, but changing: alive.
+    doc = {"member": 1, "pid": 1, "host": "elsewhere", "beat": 1, "state": "training", "time": 0}
+    fsutil.write_json(paths.heartbeat(1), doc)
+    assert live.stale(1, 1) is None
+    fsutil.write_json(paths.heartbeat(1), doc | {"state": "failed", "beat": 2})
+    assert "failed" in live.stale(1, 1)
+    fsutil.write_json(paths.heartbeat(1), doc | {"host": pool.HOST, "pid": 2**22 + 12345, "beat": 3})
+    assert "gone" in live.stale(1, 1)
