@@ -36,7 +36,15 @@ class Stopped(BaseException):
         self.signum = signum
 
 
+_stopping = False
+
+
 def _on_signal(signum, frame):
+    # Ctrl-C reaches a member both from the terminal and from its launcher: act on the first only.
+    global _stopping
+    if _stopping:
+        return
+    _stopping = True
     raise Stopped(signum)
 
 
@@ -180,7 +188,8 @@ def _loop(paths: pool.Paths, cfg: PoolConfig, mc: MemberConfig, hb: pool.Heartbe
         res = pool.barrier(paths, i, cfg, me, like, quorum, mc.barrier_timeout, liveness,
                            poll_max=mc.poll_max)
         pool.fsutil.write_json(paths.wait_json(i, me),
-                               {"iteration": i, "member": me, "wait_seconds": res.waited}, sync_dir=False)
+                               {"iteration": i, "member": me, "wait_seconds": res.waited,
+                                "resumed_at": time.time()}, sync_dir=False)
         sel = res.selection
         if res.created:
             pool.update_best(paths, sel)

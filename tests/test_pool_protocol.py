@@ -64,7 +64,7 @@ def test_choose_highest_return_ties_to_lowest_member():
 
 
 def test_selection_is_argmax_over_valid_deposits(tmp_path):
-    paths, cfg = make_pool(tmp_path / "p", pool_size=3)
+    paths, _ = make_pool(tmp_path / "p", pool_size=3)
     _deposit(paths, 1, 0, 10.0)
     _deposit(paths, 1, 1, 12.5)
     _deposit(paths, 1, 2, 12.5)
@@ -73,7 +73,7 @@ def test_selection_is_argmax_over_valid_deposits(tmp_path):
     assert sel["member"] == 1 and sel["eval_return"] == 12.5
     assert [c["member"] for c in sel["considered"]] == [0, 1, 2] and sel["skipped"] == []
     assert pool.load_selected_agent  # selection is loadable once published:
-    doc, created = pool.publish_selection(paths, sel, by=0)
+    _, created = pool.publish_selection(paths, sel, by=0)
     assert created and pool.load_selected_agent(paths, 1).to_bytes() == agent(1).to_bytes()
 
 

@@ -1,0 +1,205 @@
+"""Real pools: members are separate OS processes on one real directory; kills are real SIGKILLs."""
+
+import json
+import os
+import signal
+import time
+
+import numpy as np
+import pytest
+
+from rl_pool import Agent
+
+from .conftest import SHORT, rl_pool, spawn
+
+pytestmark = pytest.mark.multiprocess
+
+ITERS = 6
+
+
+def history(d):
+    """What must be identical between two runs: selections, every score and every agent's hash."""
+    out = []
+    i = 1
+    while os.path.exists(d / f"iterations/{i:06d}/selected.json"):
+        sel = json.loads((d / f"iterations/{i:06d}/selected.json").read_text())
+        deps = {}
+        for m in range(2):
+            p = d / f"iterations/{i:06d}/member-{m:03d}.json"
+            if p.exists():
+                doc = json.loads(p.read_text())
+                deps[m] = (doc["eval_return"], doc["eval_returns"], doc["agent_sha256"], doc["learning_rate"])
+        out.append((sel["member"], sel["eval_return"], sel["agent_sha256"], deps))
+        i += 1
+    return out
+
+
+def run_pool(d, lrs=(0.003, 0.03), extra=()):
+    procs = [spawn("train", "--pool-dir", d, "--pool-size", 2, "--member", m, "--learning-rate", lr,
+                   "--iterations", ITERS, *SHORT, "--quiet", *extra) for m, lr in enumerate(lrs)]
+    for p in procs:
+        _, err = p.communicate(timeout=240)
+        assert p.returncode == 0, err
+    return history(d)
+
+
+@pytest.fixture(scope="module")
+def reference(tmp_path_factory):
+    d = tmp_path_factory.mktemp("ref") / "pool"
+    return d, run_pool(d)
+
+
+def test_two_member_pool_end_to_end(reference):
+    d, hist = reference
+    assert len(hist) == ITERS
+    best = (None, float("-inf"))
+    for i, (member, ret, _sha, deps) in enumerate(hist, start=1):
+        assert set(deps) == {0, 1}, f"iteration {i} lacks a deposit"
+        # selection = argmax with ties to the lowest member
+        want = min(deps, key=lambda m: (-deps[m][0], m))
+        assert member == want and ret == deps[want][0]
+        assert deps[0][3] == 0.003 and deps[1][3] == 0.03
+        sel = json.loads((d / f"iterations/{i:06d}/selected.json").read_text())
+        assert sel["quorum_reason"] == "complete" and sel["skipped"] == []
+        # both members evaluated on the same episodes: same seeds, so the initial agent would tie
+        if ret > best[1]:
+            best = (i, ret)
+    b = json.loads((d / "best.json").read_text())
+    assert (b["iteration"], b["eval_return"]) == best
+    Agent.load(d / "best.npz")
+    st = json.loads(rl_pool("status", d, "--json", check=0).stdout)
+    assert st["iterations_completed"] == ITERS
+    assert {m["state"] for m in st["members"]} == {"finished"}
+    # Member 1 continued from the selection: its iteration-2 parent is iteration 1's winner.
+    dep = json.loads((d / "iterations/000002/member-001.json").read_text())
+    assert dep["parent"] == {"iteration": 1, "member": hist[0][0]}
+
+
+def test_same_settings_twice_give_the_same_history(reference, tmp_path):
+    _, hist = reference
+    assert run_pool(tmp_path / "again") == hist
+
+
+def test_sigkill_and_restart_reproduces_the_uninterrupted_history(reference, tmp_path):
+    _, hist = reference
+    d = tmp_path / "killed"
+    args = ["--pool-size", 2, "--iterations", ITERS, *SHORT, "--quiet"]
+    m0 = spawn("train", "--pool-dir", d, "--member", 0, "--learning-rate", 0.003, *args)
+    m1 = spawn("train", "--pool-dir", d, "--member", 1, "--learning-rate", 0.03, *args)
+    hb = d / "members/member-001.json"
+    deadline = time.time() + 120
+    killed_at = None
+    while time.time() < deadline:
+        try:
+            doc = json.loads(hb.read_text())
+        except (OSError, ValueError):
+            doc = {}
+        if doc.get("state") == "training" and (doc.get("iteration") or 0) >= 3:
+            m1.send_signal(signal.SIGKILL)
+            killed_at = doc["iteration"]
+            break
+        time.sleep(0.002)
+    assert killed_at is not None, "member 1 never reached iteration 3"
+    m1.wait()
+    assert m1.returncode == -signal.SIGKILL
+    assert m0.poll() is None  # member 0 waits for it: quorum 2 of 2
+    # a killed writer may leave a temp file: plant one too, it must be ignored and cleaned
+    (d / f"iterations/{killed_at:06d}/.member-001.npz.tmp-host-1-deadbeef").write_bytes(b"half")
+    m1 = spawn("train", "--pool-dir", d, "--member", 1, "--learning-rate", 0.03, *args)
+    for p in (m0, m1):
+        _, err = p.communicate(timeout=240)
+        assert p.returncode == 0, err
+    assert history(d) == hist
+    leftovers = [n for dp, _, fs in os.walk(d) for n in fs if ".tmp-" in n]
+    assert leftovers == []
+
+
+def test_member_that_never_comes_back_quorum_lets_the_other_go_on(tmp_path):
+    d = tmp_path / "alone"
+    proc = rl_pool("train", "--pool-dir", d, "--pool-size", 2, "--member", 0, "--iterations", 3, *SHORT,
+                   "--quorum", 1, "--heartbeat-timeout", 1, "--quiet", check=0)
+    assert proc.returncode == 0
+    for i in (1, 2, 3):
+        sel = json.loads((d / f"iterations/{i:06d}/selected.json").read_text())
+        assert sel["member"] == 0
+        assert sel["skipped"] == [{"member": 1, "reason": "missing"}]
+        assert "stale" in sel["quorum_reason"] and "member 1 heartbeat unchanged" in sel["quorum_reason"]
+    assert "went on without stale members" in (d / "logs/member-000.log").read_text()
+
+
+def test_member_left_behind_rejoins_where_the_pool_is(tmp_path):
+    d = tmp_path / "catchup"
+    args = ["--pool-size", 2, *SHORT, "--quorum", 1, "--heartbeat-timeout", 1, "--quiet"]
+    # member 1 runs alone (quorum 1) to iteration 1 and stops; member 0 then goes on to 5 without it
+    rl_pool("train", "--pool-dir", d, "--member", 1, *args, "--iterations", 1, check=0)
+    rl_pool("train", "--pool-dir", d, "--member", 0, *args, "--iterations", 5, check=0)
+    sel = json.loads((d / "iterations/000003/selected.json").read_text())
+    assert sel["skipped"] == [{"member": 1, "reason": "missing"}]
+    assert "member 1 finished" in sel["quorum_reason"]
+    # now member 1 comes back with a larger target and rejoins where the pool is
+    rl_pool("train", "--pool-dir", d, "--member", 1, *args, "--iterations", 6, check=0)
+    dep = json.loads((d / "iterations/000006/member-001.json").read_text())
+    assert dep["parent"]["iteration"] == 5
+    assert not (d / "iterations/000004/member-001.json").exists()
+
+
+def test_hostile_deposits_in_a_live_pool_are_skipped_and_never_run(tmp_path):
+    import io
+
+    d = tmp_path / "hostile"
+    marker = tmp_path / "code-ran"
+    # Members 0 and 1 are real; "member 2" is an attacker who pre-plants its deposits.
+    procs = [spawn("train", "--pool-dir", d, "--pool-size", 3, "--member", m, "--iterations", 4, *SHORT,
+                   "--quiet") for m in (0, 1)]
+    deadline = time.time() + 60
+    while not (d / "iterations/000000/selected.json").exists() and time.time() < deadline:
+        time.sleep(0.01)
+    from .helpers import Evil, agent
+
+    with np.load(io.BytesIO(agent().to_bytes())) as z:
+        arrays = {k: z[k] for k in z.files}
+    buf = io.BytesIO()
+    np.savez(buf, **(arrays | {"w": np.array([Evil(marker)], dtype=object)}))
+    import hashlib
+
+    data = buf.getvalue()
+    for i in range(1, 5):
+        it = d / f"iterations/{i:06d}"
+        it.mkdir(parents=True, exist_ok=True)
+        if i % 2:
+            (it / "member-002.npz").write_bytes(data)
+            (it / "member-002.json").write_text(json.dumps(
+                {"iteration": i, "member": 2, "eval_return": 1e12, "agent_sha256": hashlib.sha256(data).hexdigest()}))
+        else:
+            (it / "member-002.json").write_text("{\"eval_return\": 1e300,")
+        (it / "member-099.json").write_text("{}")  # a stray: ignored
+    for p in procs:
+        _, err = p.communicate(timeout=240)
+        assert p.returncode == 0, err
+    for i in range(1, 5):
+        sel = json.loads((d / f"iterations/{i:06d}/selected.json").read_text())
+        assert sel["member"] in (0, 1)
+        (skip,) = sel["skipped"]
+        assert skip["member"] == 2 and skip["reason"] != "missing"
+    assert not marker.exists()
+
+
+def test_launch_runs_the_pool_and_reports(tmp_path):
+    d = tmp_path / "launched"
+    proc = rl_pool("launch", "--pool-dir", d, "--pool-size", 2, "--iterations", 3, *SHORT,
+                   "--learning-rate", 0.02, check=0)
+    assert "iterations completed 3" in proc.stdout
+    st = json.loads(rl_pool("status", d, "--json", check=0).stdout)
+    lrs = {m["member"]: m["learning_rate"] for h in st["history"] for m in h["members"]}
+    assert lrs == {0: pytest.approx(0.002), 1: 0.02}
+
+
+def test_launch_surfaces_a_failed_member(tmp_path):
+    d = tmp_path / "failing"
+    rl_pool("launch", "--pool-dir", d, "--pool-size", 2, "--iterations", 1, *SHORT, check=0)
+    # Corrupt the selected agent's file: every member needs it to train the next iteration.
+    sel = json.loads((d / "iterations/000001/selected.json").read_text())
+    (d / sel["agent"]).write_bytes(b"garbage")
+    proc = rl_pool("launch", "--pool-dir", d, "--iterations", 3, "--barrier-timeout", 30)
+    assert proc.returncode == 1
+    assert "failed" in proc.stderr and "does not match the hash" in proc.stderr
