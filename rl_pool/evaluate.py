@@ -1,0 +1,178 @@
+"""Evaluation across worker processes, and the base class for custom evaluation workers.
+
+Workers are started with ``spawn`` (a fresh interpreter, never a fork of a
+process that may hold JAX or BLAS threads) and inherit one-thread caps through
+their environment, so W workers on W cores do not oversubscribe. Each worker
+process builds its environment once and reuses it for every episode it runs.
+"""
+
+from __future__ import annotations
+
+import importlib
+import math
+import multiprocessing as mp
+import os
+import time
+
+from .threads import THREAD_CAPS, cap_threads
+
+
+class EvalWorker:
+    """A picklable evaluation callable: ``worker(seed) -> float``.
+
+    Subclass it and override :meth:`evaluate` (and :meth:`make_env` if the
+    episode needs a differently made environment). The instance carries only
+    the agent's bytes and plain settings, so it pickles cleanly under spawn;
+    the env and the loaded agent are built lazily, once per process, after the
+    math-thread caps are in place. Subclasses must live in an importable module
+    (not ``__main__``), since spawned processes import them by name.
+    """
+
+    def __init__(self, agent_bytes: bytes, mode: str = "mean"):
+        self.agent_bytes = agent_bytes
+        self.mode = mode
+        self._env = None
+        self._agent = None
+
+    def __getstate__(self):
+        state = self.__dict__.copy()
+        state["_env"] = state["_agent"] = None
+        return state
+
+    # ----- hooks for subclasses -------------------------------------------
+    def make_env(self, agent):
+        """The environment episodes run in (default: the agent's own, unwrapped)."""
+        from . import envs
+
+        kwargs = dict(agent.meta.env_kwargs, max_episode_steps=agent.meta.max_episode_steps)
+        return envs.make(agent.meta.env, kwargs)[0]
+
+    def evaluate(self, env, agent, seed: int) -> float:
+        """Score one episode; the default is its undiscounted return."""
+        total = 0.0
+        for _, _, reward, _ in self.episode(env, agent, seed):
+            total += reward
+        return total
+
+    # ----- helpers ----------------------------------------------------------
+    def actor(self, agent, seed: int):
+        """``obs -> action`` for one episode: the Beta mean, or samples seeded by ``seed``."""
+        import numpy as np
+
+        if self.mode != "sample":
+            return agent.act
+        rng = np.random.default_rng(seed)
+        return lambda obs: agent.act(obs, rng=rng, deterministic=False)
+
+    def episode(self, env, agent, seed: int):
+        """Yield ``(obs, action, reward, info)`` for each step of one episode."""
+        act = self.actor(agent, seed)
+        obs, _ = env.reset(seed=int(seed))
+        for _ in range(agent.meta.max_episode_steps):
+            action = act(obs)
+            nxt, reward, terminated, _, info = env.step(action)
+            yield obs, action, float(reward), info
+            obs = nxt
+            if terminated:
+                break
+
+    def setup(self) -> None:
+        cap_threads()
+        from .agent import Agent
+
+        self._agent = Agent.from_bytes(self.agent_bytes)
+        self._env = self.make_env(self._agent)
+
+    def __call__(self, seed: int) -> float:
+        if self._env is None:
+            self.setup()
+        return float(self.evaluate(self._env, self._agent, seed))
+
+
+_WORKER: EvalWorker | None = None
+
+
+def _init(worker: EvalWorker) -> None:
+    global _WORKER
+    _WORKER = worker
+    _WORKER.setup()
+
+
+def _run(seed: int) -> float:
+    return _WORKER(seed)
+
+
+def load_worker_class(spec: str | None):
+    if not spec:
+        return EvalWorker
+    from .errors import UsageError
+
+    module, _, name = spec.partition(":")
+    if not module or not name:
+        raise UsageError(f"--worker must be MODULE:CLASS, got {spec!r}")
+    try:
+        cls = getattr(importlib.import_module(module), name)
+    except (ImportError, AttributeError) as exc:
+        raise UsageError(f"cannot import worker {spec!r}: {exc}") from None
+    if not (isinstance(cls, type) and issubclass(cls, EvalWorker)):
+        raise UsageError(f"worker {spec!r} is not a subclass of rl_pool.evaluate.EvalWorker")
+    return cls
+
+
+def evaluate_bytes(agent_bytes: bytes, episodes: int, workers: int = 1, seed: int = 1_000_000,
+                   worker_cls=EvalWorker, mode: str = "mean") -> dict:
+    """Run ``episodes`` episodes (reset seeds ``seed + k``) over ``workers`` processes; results in episode order."""
+    worker = worker_cls(agent_bytes, mode=mode)
+    seeds = [seed + k for k in range(episodes)]
+    t0 = time.perf_counter()
+    if workers <= 1:
+        scores = [worker(s) for s in seeds]
+    else:
+        ctx = mp.get_context("spawn")
+        saved = {k: os.environ.get(k) for k in THREAD_CAPS}
+        cap_threads()  # children inherit these at spawn, before they import numpy
+        try:
+            with ctx.Pool(workers, initializer=_init, initargs=(worker,)) as p:
+                scores = p.map(_run, seeds, chunksize=1)
+        finally:
+            for k, v in saved.items():
+                if v is None:
+                    os.environ.pop(k, None)
+                else:
+                    os.environ[k] = v
+    secs = time.perf_counter() - t0
+    mean = sum(scores) / len(scores)
+    std = math.sqrt(sum((s - mean) ** 2 for s in scores) / len(scores))
+    return {"episodes": episodes, "mean_return": mean, "std_return": std, "returns": scores, "seeds": seeds,
+            "workers": max(1, workers), "seconds": secs, "mode": mode,
+            "worker": f"{worker_cls.__module__}:{worker_cls.__qualname__}"}
+
+
+def resolve_agent(target: str) -> tuple[str, bytes]:
+    """A pool directory (its best agent) or an agent file -> ``(path, bytes)``, checked."""
+    from . import fsutil, pool
+    from .agent import Agent
+    from .errors import UsageError
+
+    path = target
+    if os.path.isdir(target):
+        pool.read_config(pool.Paths(target))  # a foreign directory is refused here
+        path = os.path.join(target, "best.npz")
+        if not os.path.exists(path):
+            raise UsageError(f"pool {target} has no best agent yet (no iteration completed)")
+    elif not os.path.exists(target):
+        raise UsageError(f"no agent file or pool directory at {target}")
+    data = fsutil.read_bytes(path)
+    Agent.from_bytes(data, source=path)  # AgentFileError (a UsageError) if it is not an agent
+    return path, data
+
+
+def evaluate_path(target: str, episodes: int = 10, workers: int = 1, seed: int = 1_000_000,
+                  worker: str | None = None, mode: str = "mean") -> dict:
+    from .errors import UsageError
+
+    if episodes < 1 or workers < 1:
+        raise UsageError("--episodes and --workers must be positive")
+    cls = load_worker_class(worker)
+    path, data = resolve_agent(target)
+    return evaluate_bytes(data, episodes, workers, seed, cls, mode) | {"agent": path}
