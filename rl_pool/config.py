@@ -125,6 +125,8 @@ class MemberConfig:
     quorum: int = opt(0, "deposits needed to go on without stale members (0: majority, floor(N/2)+1)")
     keep_iterations: int = opt(5, "keep non-selected agents of the last K iterations (selected ones are always kept)")
     poll_max: float = opt(0.01, "longest pause between barrier polls, seconds (raise on busy network filesystems)")
+    lr_adapt: float = opt(0.0, "after losing an iteration, take the winner's learning rate times F or 1/F "
+                               "(population-based training); 0: keep this member's own rate")
 
     def validate(self, pool_size: int) -> MemberConfig:
         if not 0 <= self.member < pool_size:
@@ -137,6 +139,8 @@ class MemberConfig:
             raise UsageError("--barrier-timeout, --heartbeat-timeout and --poll-max must be positive")
         if not 0 <= self.quorum <= pool_size:
             raise UsageError(f"--quorum must be in 1..{pool_size} (0 for the majority), got {self.quorum}")
+        if self.lr_adapt and not (math.isfinite(self.lr_adapt) and self.lr_adapt >= 1.0):
+            raise UsageError(f"--lr-adapt must be >= 1 (or 0 for off), got {self.lr_adapt}")
         if self.keep_iterations < 0:
             raise UsageError(f"--keep-iterations must be >= 0, got {self.keep_iterations}")
         return self

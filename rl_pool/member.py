@@ -159,6 +159,7 @@ def _loop(paths: pool.Paths, cfg: PoolConfig, mc: MemberConfig, hb: pool.Heartbe
     log.info("member %d of %d on %s, lr %g, from iteration %d to %d (quorum %d)",
              me, cfg.pool_size, cfg.env, mc.learning_rate, first, mc.iterations, quorum)
 
+    lr = _learning_rate_for(paths, cfg, mc, first)
     for i in range(first, mc.iterations + 1):
         os.makedirs(paths.iteration(i), exist_ok=True)
         pool.remove_own_temps(paths, i, me)
@@ -169,11 +170,11 @@ def _loop(paths: pool.Paths, cfg: PoolConfig, mc: MemberConfig, hb: pool.Heartbe
             start = pool.load_selected_agent(paths, i - 1)
             prev = pool.read_selected(paths, i - 1)
             hb.set(state="training", iteration=i)
-            tr = trainer.train(start, env_list, cfg, mc.learning_rate, me, i)
+            tr = trainer.train(start, env_list, cfg, lr, me, i)
             hb.set(state="evaluating")
             ev = trainer.evaluate(tr.agent, env_list, cfg, i)
             metrics = ev.summary() | {
-                "learning_rate": mc.learning_rate,
+                "learning_rate": lr,
                 "train_steps": tr.steps, "train_seconds": tr.seconds,
                 "train_return_mean": sum(tr.episode_returns) / len(tr.episode_returns),
                 "eval_steps": ev.steps, "eval_seconds": ev.seconds,
@@ -197,7 +198,35 @@ def _loop(paths: pool.Paths, cfg: PoolConfig, mc: MemberConfig, hb: pool.Heartbe
                 pool.collect_garbage(paths, i - mc.keep_iterations)
         log.info("iteration %d: selected member %s (eval return %s); mine %s; waited %.3fs",
                  i, sel.get("member"), _fmt(sel.get("eval_return")), _fmt(mine), res.waited)
-        hb.set(selected=sel.get("member"), selected_return=sel.get("eval_return"))
+        lr = _next_learning_rate(paths, cfg, mc, i, lr)
+        hb.set(selected=sel.get("member"), selected_return=sel.get("eval_return"), learning_rate=lr)
+
+
+def _deposit_lr(paths: pool.Paths, i: int, m: int) -> float | None:
+    try:
+        lr = pool.fsutil.read_json(paths.deposit_json(i, m)).get("learning_rate")
+    except (OSError, ValueError, AttributeError):
+        return None
+    return float(lr) if isinstance(lr, (int, float)) and lr > 0 else None
+
+
+def _next_learning_rate(paths: pool.Paths, cfg: PoolConfig, mc: MemberConfig, i: int, own: float) -> float:
+    """This member's rate for iteration ``i + 1``, a function of iteration ``i``'s files only."""
+    if not mc.lr_adapt:
+        return mc.learning_rate
+    sel = pool.read_selected(paths, i) or {}
+    winner = sel.get("member")
+    won = winner == mc.member
+    winner_lr = _deposit_lr(paths, i, winner) if isinstance(winner, int) else None
+    return trainer.adapted_learning_rate(cfg.seed, mc.member, i, own, winner_lr, won, mc.lr_adapt)
+
+
+def _learning_rate_for(paths: pool.Paths, cfg: PoolConfig, mc: MemberConfig, first: int) -> float:
+    """On (re)start: the rate an uninterrupted run would use in iteration ``first``."""
+    if not mc.lr_adapt or first <= 1:
+        return mc.learning_rate
+    own = _deposit_lr(paths, first - 1, mc.member) or mc.learning_rate
+    return _next_learning_rate(paths, cfg, mc, first - 1, own)
 
 
 def _fmt(x) -> str:

@@ -20,7 +20,8 @@ from .config import PoolConfig
 from .rollout import run_episodes
 
 # Stream tags, so the same (seed, member, iteration) never feeds two purposes.
-_TRAIN_ENV, _TRAIN_ACT, _EVAL_ENV, _EVAL_ACT = 0, 1, 2, 3
+_TRAIN_ENV, _TRAIN_ACT, _EVAL_ENV, _EVAL_ACT, _LR_ADAPT = 0, 1, 2, 3, 4
+LR_BOUNDS = (1e-5, 10.0)
 
 
 def _seq(*words: int) -> np.random.SeedSequence:
@@ -41,6 +42,21 @@ def eval_streams(seed: int, iteration: int, n_episodes: int):
     """The evaluation episodes of an iteration, shared by all members."""
     seeds = env_seeds(_seq(seed, 2**31 - 1, iteration, _EVAL_ENV), n_episodes)
     return seeds, np.random.Generator(np.random.PCG64(_seq(seed, 2**31 - 1, iteration, _EVAL_ACT)))
+
+
+def adapted_learning_rate(seed: int, member: int, iteration: int, own: float, winner: float | None,
+                          won: bool, factor: float) -> float:
+    """The learning rate for ``iteration + 1`` under population-based adaptation.
+
+    A member whose branch won keeps its rate; one that lost takes the winner's
+    rate times ``factor`` or ``1 / factor`` (a fair coin from its own seeded
+    stream), so the pool keeps probing rates around what currently works.
+    """
+    if factor <= 0 or won or winner is None:
+        return own
+    coin = np.random.Generator(np.random.PCG64(_seq(seed, member, iteration, _LR_ADAPT))).random()
+    lr = winner * (factor if coin < 0.5 else 1.0 / factor)
+    return float(min(max(lr, LR_BOUNDS[0]), LR_BOUNDS[1]))
 
 
 @dataclass

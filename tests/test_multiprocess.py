@@ -34,7 +34,7 @@ def history(d):
     return out
 
 
-def run_pool(d, lrs=(0.003, 0.03), extra=()):
+def run_pool(d, lrs=(0.003, 0.03), extra=("--lr-adapt", 2)):
     procs = [spawn("train", "--pool-dir", d, "--pool-size", 2, "--member", m, "--learning-rate", lr,
                    "--iterations", ITERS, *SHORT, "--quiet", *extra) for m, lr in enumerate(lrs)]
     for p in procs:
@@ -58,7 +58,15 @@ def test_two_member_pool_end_to_end(reference):
         # selection = argmax with ties to the lowest member
         want = min(deps, key=lambda m: (-deps[m][0], m))
         assert member == want and ret == deps[want][0]
-        assert deps[0][3] == 0.003 and deps[1][3] == 0.03
+        if i == 1:
+            assert deps[0][3] == 0.003 and deps[1][3] == 0.03
+        else:  # --lr-adapt 2: the loser of i-1 takes the winner's rate x2 or /2, the winner keeps its own
+            prev_winner, prev_deps = hist[i - 2][0], hist[i - 2][3]
+            for m in (0, 1):
+                if m == prev_winner:
+                    assert deps[m][3] == prev_deps[m][3]
+                else:
+                    assert deps[m][3] / prev_deps[prev_winner][3] in (pytest.approx(2.0), pytest.approx(0.5))
         sel = json.loads((d / f"iterations/{i:06d}/selected.json").read_text())
         assert sel["quorum_reason"] == "complete" and sel["skipped"] == []
         # both members evaluated on the same episodes: same seeds, so the initial agent would tie
@@ -83,7 +91,7 @@ def test_same_settings_twice_give_the_same_history(reference, tmp_path):
 def test_sigkill_and_restart_reproduces_the_uninterrupted_history(reference, tmp_path):
     _, hist = reference
     d = tmp_path / "killed"
-    args = ["--pool-size", 2, "--iterations", ITERS, *SHORT, "--quiet"]
+    args = ["--pool-size", 2, "--iterations", ITERS, *SHORT, "--quiet", "--lr-adapt", 2]
     m0 = spawn("train", "--pool-dir", d, "--member", 0, "--learning-rate", 0.003, *args)
     m1 = spawn("train", "--pool-dir", d, "--member", 1, "--learning-rate", 0.03, *args)
     hb = d / "members/member-001.json"
