@@ -78,6 +78,8 @@ def cmd_status(args) -> int:
     from . import status
 
     st = status.status(args.pool_dir)
+    if args.csv:
+        status.write_csv(st, args.csv)
     if args.json:
         print(json.dumps(st, indent=1))
     else:
@@ -143,6 +145,8 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("pool_dir", help="the pool directory")
     s.add_argument("--json", action="store_true", help="print one JSON object")
     s.add_argument("--last", type=int, default=10, help="iterations shown in the table (default 10)")
+    s.add_argument("--csv", default=None, metavar="FILE",
+                   help="also write the per-iteration history (returns, learning rates, wall time, env steps)")
     s.set_defaults(func=cmd_status)
 
     pl = sub.add_parser("plot", help="plot the per-iteration evaluation return to a PNG")

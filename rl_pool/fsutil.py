@@ -102,24 +102,32 @@ def write_json(path, obj, sync_dir: bool = True) -> None:
     atomic_write(path, dumps(obj), sync_dir=sync_dir)
 
 
-def read_bytes(path, retries: int = 3) -> bytes:
-    """Read a whole file, retrying transient network-filesystem errors with backoff."""
+def read_bytes(path, retries: int = 3, missing_retries: int = 0) -> bytes:
+    """Read a whole file, retrying transient network-filesystem errors with backoff.
+
+    ``missing_retries``: also retry "no such file" that many times, for files
+    another host's listing says exist (an NFS client may cache a stale
+    negative lookup for a moment).
+    """
     delay = 0.01
-    for attempt in range(retries + 1):
+    for attempt in range(max(retries, missing_retries) + 1):
         try:
             with open(path, "rb") as fh:
                 return fh.read()
-        except OSError as exc:
-            if exc.errno not in TRANSIENT or attempt == retries:
+        except FileNotFoundError:
+            if attempt >= missing_retries:
                 raise
-            time.sleep(delay)
-            delay *= 4
+        except OSError as exc:
+            if exc.errno not in TRANSIENT or attempt >= retries:
+                raise
+        time.sleep(delay)  # 10, 20, 40, ... ms
+        delay *= 2
     raise AssertionError("unreachable")
 
 
-def read_json(path):
+def read_json(path, missing_retries: int = 0):
     """Parse a JSON file; raises OSError or ValueError (incl. JSONDecodeError)."""
-    return json.loads(read_bytes(path).decode("utf-8"))
+    return json.loads(read_bytes(path, missing_retries=missing_retries).decode("utf-8"))
 
 
 def listdir(path) -> list[str]:

@@ -234,7 +234,7 @@ def read_deposit(paths: Paths, i: int, m: int, like: Agent | None = None):
     pickle, holds finite arrays of the right shapes, and fits the pool's env.
     """
     try:
-        doc = fsutil.read_json(paths.deposit_json(i, m))
+        doc = fsutil.read_json(paths.deposit_json(i, m), missing_retries=5)
     except (OSError, ValueError) as exc:
         raise ValueError(f"metrics unreadable ({type(exc).__name__})") from None
     if not isinstance(doc, dict):
@@ -245,7 +245,7 @@ def read_deposit(paths: Paths, i: int, m: int, like: Agent | None = None):
     if isinstance(ret, bool) or not isinstance(ret, (int, float)) or not math.isfinite(ret):
         raise ValueError(f"eval_return is not a finite number ({ret!r})")
     try:
-        data = fsutil.read_bytes(paths.deposit_npz(i, m))
+        data = fsutil.read_bytes(paths.deposit_npz(i, m), missing_retries=5)
     except OSError as exc:
         raise ValueError(f"agent unreadable ({exc.strerror or exc})") from None
     if sha256(data) != doc.get("agent_sha256"):

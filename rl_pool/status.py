@@ -109,6 +109,32 @@ def status(pool_dir: str) -> dict:
     }
 
 
+def write_csv(st: dict, out: str) -> str:
+    """``history.csv``: one row per iteration, each member's return and learning rate, wall time, env steps."""
+    import csv
+
+    n = st["pool_size"]
+    cols = ["iteration", "selected_member", "eval_return", "best_so_far", "elapsed_seconds", "env_steps"]
+    for m in range(n):
+        cols += [f"member{m}_eval_return", f"member{m}_learning_rate"]
+    steps, best = 0, None
+    with open(out, "w", newline="") as fh:
+        w = csv.writer(fh)
+        w.writerow(cols)
+        for r in st["history"]:
+            by = {x["member"]: x for x in r["members"]}
+            steps += sum((x.get("train_steps") or 0) + (x.get("eval_steps") or 0) for x in r["members"])
+            if r["eval_return"] is not None:
+                best = r["eval_return"] if best is None else max(best, r["eval_return"])
+            row = [r["iteration"], r["selected_member"], r["eval_return"], best,
+                   None if r["elapsed_seconds"] is None else round(r["elapsed_seconds"], 3), steps]
+            for m in range(n):
+                x = by.get(m, {})
+                row += [x.get("eval_return"), x.get("learning_rate")]
+            w.writerow(["" if v is None else v for v in row])
+    return out
+
+
 def format_table(st: dict, last: int = 10) -> str:
     """A status page a person reads at a glance."""
     lines = [f"pool {st['pool_dir']}  env {st['env']}  members {st['pool_size']}  "

@@ -177,3 +177,16 @@ def test_update_refuses_mismatched_shapes():
     w, x, u, adv, mask = _batch()
     with pytest.raises(ValueError):
         learner.update(w, learner.init_opt_state(w), x[:, :-1], u, adv, mask, 0.1, "adam")
+
+
+def test_adapted_learning_rate_rule():
+    from rl_pool.trainer import LR_BOUNDS, adapted_learning_rate
+
+    assert adapted_learning_rate(0, 1, 5, 0.03, 0.003, won=True, factor=2) == 0.03
+    assert adapted_learning_rate(0, 1, 5, 0.03, 0.003, won=False, factor=0) == 0.03
+    seen = {round(adapted_learning_rate(0, 1, i, 0.03, 0.01, won=False, factor=2), 12) for i in range(40)}
+    assert seen == {0.02, 0.005}
+    # reproducible: a function of (seed, member, iteration) only
+    assert [adapted_learning_rate(3, 0, i, 1, 1, False, 1.5) for i in range(10)] == \
+        [adapted_learning_rate(3, 0, i, 9, 1, False, 1.5) for i in range(10)]
+    assert adapted_learning_rate(0, 0, 0, 1, 100.0, False, 4) <= LR_BOUNDS[1]
