@@ -326,16 +326,10 @@ def update_best(paths: Paths, selection: dict) -> bool:
     return True
 
 
-def collect_garbage(paths: Paths, i: int) -> int:
-    """Remove non-selected agents and temp leftovers of iteration ``i``; keep every JSON."""
-    sel = read_selected(paths, i)
-    if sel is None:
-        return 0
-    keep = os.path.basename(sel.get("agent", ""))
+def _remove_matching(d: str, doomed) -> int:
     removed = 0
-    d = paths.iteration(i)
     for name in fsutil.listdir(d):
-        if (name.endswith(".npz") and name.startswith("member-") and name != keep) or fsutil.is_tmp(name):
+        if doomed(name):
             try:
                 os.unlink(os.path.join(d, name))
                 removed += 1
@@ -344,19 +338,21 @@ def collect_garbage(paths: Paths, i: int) -> int:
     return removed
 
 
+def collect_garbage(paths: Paths, i: int) -> int:
+    """Remove non-selected agents and temp leftovers of iteration ``i``; keep every JSON."""
+    sel = read_selected(paths, i)
+    if sel is None:
+        return 0
+    keep = os.path.basename(sel.get("agent", ""))
+    return _remove_matching(paths.iteration(i), lambda name: fsutil.is_tmp(name) or (
+        name.endswith(".npz") and name.startswith("member-") and name != keep))
+
+
 def remove_own_temps(paths: Paths, i: int, m: int) -> int:
     """Temp files a killed earlier run of member ``m`` left (they are never read)."""
-    removed = 0
     prefix = "." + member_name(m)
-    for d in (paths.iteration(i), paths.members):
-        for name in fsutil.listdir(d):
-            if name.startswith(prefix) and fsutil.is_tmp(name):
-                try:
-                    os.unlink(os.path.join(d, name))
-                    removed += 1
-                except OSError:
-                    pass
-    return removed
+    return sum(_remove_matching(d, lambda name: name.startswith(prefix) and fsutil.is_tmp(name))
+               for d in (paths.iteration(i), paths.members))
 
 
 # ---------------------------------------------------------------- heartbeats

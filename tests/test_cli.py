@@ -58,6 +58,20 @@ def test_status_json_has_the_contract_keys(single_pool):
     assert "best:" in table and "finished" in table
 
 
+def test_status_csv_history(single_pool, tmp_path):
+    import csv
+
+    out = tmp_path / "history.csv"
+    rl_pool("status", single_pool, "--csv", out, check=0)
+    rows = list(csv.DictReader(out.open()))
+    st = json.loads(rl_pool("status", single_pool, "--json", check=0).stdout)
+    assert [int(r["iteration"]) for r in rows] == [1, 2, 3]
+    assert [float(r["eval_return"]) for r in rows] == [h["eval_return"] for h in st["history"]]
+    assert [int(r["env_steps"]) for r in rows] == [k * (4 * 60 + 2 * 60) for k in (1, 2, 3)]
+    assert float(rows[-1]["best_so_far"]) == st["best"]["eval_return"]
+    assert rows[0]["member0_learning_rate"] == "0.01"
+
+
 def test_rerun_on_finished_pool_exits_at_once_and_larger_target_continues(single_pool, tmp_path):
     before = _tree(single_pool)
     rl_pool("train", "--pool-dir", single_pool, "--iterations", 2, "--quiet", check=0)
