@@ -71,7 +71,7 @@ class AgentMeta:
             )
         except (KeyError, TypeError, ValueError) as exc:
             raise AgentFileError(f"agent meta is incomplete: {exc}") from None
-        if meta.policy != "linear":
+        if meta.policy not in policy.POLICIES:
             raise AgentFileError(f"unknown policy kind {meta.policy!r}")
         if len(meta.action_low) != meta.act_dim or len(meta.action_high) != meta.act_dim:
             raise AgentFileError("agent action bounds do not match its action dimension")
@@ -117,7 +117,7 @@ class Agent:
 
     def beta_params(self, obs):
         """``(alpha, beta)`` for an observation; each ``[act_dim]`` (or ``[n, act_dim]`` for a batch)."""
-        return policy.beta_params(self.w, self.normalize(obs))
+        return policy.beta_params(self.w, self.normalize(obs), policy=self.meta.policy)
 
     def act(self, obs, rng: np.random.Generator | None = None, deterministic: bool = True) -> np.ndarray:
         """An action in env units: the Beta mean if ``deterministic``, else a sample drawn from ``rng``."""
@@ -131,7 +131,7 @@ class Agent:
     def log_prob(self, obs, action) -> np.ndarray:
         """``sum_j [log Beta(u_j; a_j, b_j) - log(high_j - low_j)]`` with ``u`` the action in (0, 1)."""
         u = policy.to_unit(np.asarray(action, dtype=np.float64), self.low, self.high)
-        logp = policy.log_prob_unit(self.w, self.normalize(obs), u)
+        logp = policy.log_prob_unit(self.w, self.normalize(obs), u, policy=self.meta.policy)
         return logp - np.log(self.high - self.low).sum()
 
     # ----- files ----------------------------------------------------------

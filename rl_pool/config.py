@@ -36,7 +36,8 @@ class PoolConfig:
     gamma: float = opt(1.0, "discount factor (Swimmer needs ~1: 0.99 traps it near 40)")
     baseline: str = opt("time", "baseline: leave-one-out time-indexed mean return, or none", ("time", "none"))
     optimizer: str = opt("adam", "step-size rule: Adam, or fixed-length normalised gradient", ("adam", "normalized"))
-    policy: str = opt("linear", "policy features: linear in normalised observations", ("linear",))
+    policy: str = opt("linear", "Beta shapes linear in normalised observations through softplus+1, "
+                                "or exp+1 (linear-exp)", ("linear", "linear-exp"))
     seed: int = opt(0, "root seed; every random draw derives from (seed, member, iteration)")
 
     @property

@@ -69,19 +69,19 @@ def init_opt_state(w: np.ndarray) -> OptState:
     return OptState(np.zeros_like(w), np.zeros_like(w), 0.0)
 
 
-def objective(w, x, u, adv, mask):
+def objective(w, x, u, adv, mask, kind="linear"):
     """Surrogate ``J(w)`` above; ``x`` ``[B,T,obs]``, ``u`` ``[B,T,act]``, ``adv``/``mask`` ``[B,T]``."""
-    logp = policy.log_prob_unit(w, x, u, xp=jnp, gammaln=gammaln)
+    logp = policy.log_prob_unit(w, x, u, xp=jnp, gammaln=gammaln, policy=kind)
     n = jnp.maximum(mask.sum(), 1.0)
     return (logp * adv * mask).sum() / n
 
 
-policy_gradient = jax.jit(jax.grad(objective))
+policy_gradient = jax.jit(jax.grad(objective), static_argnames=("kind",))
 
 
-@partial(jax.jit, static_argnames=("optimizer",))
-def _update(w, m, v, t, x, u, adv, mask, lr, optimizer):
-    g = jax.grad(objective)(w, x, u, adv, mask)
+@partial(jax.jit, static_argnames=("optimizer", "kind"))
+def _update(w, m, v, t, x, u, adv, mask, lr, optimizer, kind):
+    g = jax.grad(objective)(w, x, u, adv, mask, kind)
     gnorm = jnp.sqrt((g * g).sum())
     if optimizer == "adam":
         t = t + 1.0
@@ -96,13 +96,13 @@ def _update(w, m, v, t, x, u, adv, mask, lr, optimizer):
     return w, m, v, t, gnorm
 
 
-def update(w, opt: OptState, x, u, adv, mask, lr: float, optimizer: str):
+def update(w, opt: OptState, x, u, adv, mask, lr: float, optimizer: str, kind: str = "linear"):
     """One gradient-ascent step on a batch; returns ``(w, opt_state, grad_norm)`` as NumPy."""
     if optimizer not in OPTIMIZERS:
         raise ValueError(f"unknown optimizer {optimizer!r}")
     b, t_len = mask.shape
     if x.shape[:2] != (b, t_len) or u.shape[:2] != (b, t_len) or adv.shape != (b, t_len):
         raise ValueError(f"batch shapes disagree: x {x.shape}, u {u.shape}, adv {adv.shape}, mask {mask.shape}")
-    out = _update(w, opt.m, opt.v, opt.t, x, u, adv, mask, float(lr), optimizer)
+    out = _update(w, opt.m, opt.v, opt.t, x, u, adv, mask, float(lr), optimizer, kind)
     w, m, v, t, gnorm = jax.device_get(out)
     return np.asarray(w), OptState(np.asarray(m), np.asarray(v), float(t)), float(gnorm)

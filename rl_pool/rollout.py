@@ -32,7 +32,8 @@ class Batch(NamedTuple):
 
 
 def run_episodes(envs, w, norm, low, high, seeds, max_steps: int,
-                 rng: np.random.Generator | None, deterministic: bool, record: bool = True):
+                 rng: np.random.Generator | None, deterministic: bool, record: bool = True,
+                 policy_kind: str = "linear"):
     """Run one episode in each of ``envs[:len(seeds)]`` in lockstep.
 
     ``w``: policy weights ``[obs_dim + 1, 2 * act_dim]``; ``norm``: frozen
@@ -68,7 +69,7 @@ def run_episodes(envs, w, norm, low, high, seeds, max_steps: int,
     for t in range(max_steps):
         o_act = cur if all_active else cur[active]
         x = np.clip((o_act - mean) * inv_std, -clip, clip)
-        ab = np.logaddexp(0.0, x @ w_x + w_b) + 1.0
+        ab = policy.shapes(x @ w_x + w_b, policy_kind)
         a, b = ab[:, :act_dim], ab[:, act_dim:]
         u = a / (a + b) if deterministic else policy.clip_unit(rng.beta(a, b))
         actions = low + u * span

@@ -97,10 +97,11 @@ def train(agent: Agent, envs, cfg: PoolConfig, lr: float, member: int, iteration
     B = cfg.batch_episodes
     for k in range(cfg.updates_per_iteration):
         batch = run_episodes(envs, w, norm, low, high, seeds[k * B:(k + 1) * B], T, rng,
-                             deterministic=False)
+                             deterministic=False, policy_kind=agent.meta.policy)
         x = normalizer.normalize(norm, batch.obs)
         adv = returns.advantages(batch.rewards, batch.mask, cfg.gamma, cfg.baseline)
-        w, opt, gnorm = learner.update(w, opt, x, batch.u, adv, batch.mask, lr, cfg.optimizer)
+        w, opt, gnorm = learner.update(w, opt, x, batch.u, adv, batch.mask, lr, cfg.optimizer,
+                                       agent.meta.policy)
         norm = normalizer.update(norm, batch.obs[batch.mask > 0])
         steps += batch.steps
         ep_returns.extend(float(r) for r in batch.returns)
@@ -115,5 +116,6 @@ def evaluate(agent: Agent, envs, cfg: PoolConfig, iteration: int) -> EvalResult:
     seeds, rng = eval_streams(cfg.seed, iteration, cfg.eval_episodes)
     batch = run_episodes(envs, agent.w, agent.norm, agent.low, agent.high, seeds,
                          agent.meta.max_episode_steps, rng,
-                         deterministic=cfg.eval_mode == "mean", record=False)
+                         deterministic=cfg.eval_mode == "mean", record=False,
+                         policy_kind=agent.meta.policy)
     return EvalResult([float(r) for r in batch.returns], batch.steps, time.perf_counter() - t0)

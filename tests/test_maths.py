@@ -28,14 +28,18 @@ def test_beta_log_prob_finite_at_exact_bounds(u):
     np.testing.assert_allclose(ours, scipy.stats.beta.logpdf(clipped, a, b), rtol=1e-9)
 
 
-def test_beta_params_are_softplus_plus_one():
+@pytest.mark.parametrize("kind, link", [
+    ("linear", lambda z: np.log1p(np.exp(z)) + 1),
+    ("linear-exp", lambda z: np.exp(np.minimum(z, policy.Z_MAX)) + 1),
+])
+def test_beta_params_links(kind, link):
     rng = np.random.default_rng(1)
-    w = rng.normal(size=(5, 6))
+    w = rng.normal(scale=3, size=(5, 6))
     x = rng.normal(size=(7, 4))
-    a, b = policy.beta_params(w, x)
+    a, b = policy.beta_params(w, x, policy=kind)
     z = np.hstack([x, np.ones((7, 1))]) @ w
-    np.testing.assert_allclose(a, np.log1p(np.exp(z[:, :3])) + 1)
-    np.testing.assert_allclose(b, np.log1p(np.exp(z[:, 3:])) + 1)
+    np.testing.assert_allclose(a, link(z[:, :3]))
+    np.testing.assert_allclose(b, link(z[:, 3:]))
     assert a.min() >= 1 and b.min() >= 1
 
 
@@ -123,14 +127,15 @@ def _batch(seed=6, B=3, T=5, obs=3, act=2):
     return w, x, u, adv, mask
 
 
-def test_policy_gradient_matches_finite_differences():
+@pytest.mark.parametrize("kind", policy.POLICIES)
+def test_policy_gradient_matches_finite_differences(kind):
     w, x, u, adv, mask = _batch()
 
     def J(wv):
-        logp = policy.log_prob_unit(wv, x, u, gammaln=scipy.special.gammaln)
+        logp = policy.log_prob_unit(wv, x, u, gammaln=scipy.special.gammaln, policy=kind)
         return (logp * adv * mask).sum() / mask.sum()
 
-    g = np.asarray(learner.policy_gradient(w, x, u, adv, mask))
+    g = np.asarray(learner.policy_gradient(w, x, u, adv, mask, kind))
     h = 1e-6
     fd = np.zeros_like(w)
     for idx in np.ndindex(w.shape):
