@@ -19,7 +19,7 @@ import uuid
 TMP_MARK = ".tmp-"
 
 #: Errors worth one more try on a network filesystem (stale handle, interrupted I/O).
-TRANSIENT = {errno.ESTALE, errno.EIO, errno.EINTR, errno.EAGAIN}
+TRANSIENT = {errno.ESTALE, errno.EIO, errno.EINTR, errno.EAGAIN, errno.ETIMEDOUT}
 
 
 def tmp_name(path: str, tag: str = "") -> str:
@@ -86,7 +86,9 @@ def create_exclusive(path, data: bytes) -> bool:
         os.link(tmp, path)
         created = True
     except FileExistsError:
-        created = False
+        # On NFS a retransmitted LINK whose first reply was lost answers EEXIST even though
+        # this call made the link: then the temp file has two names.
+        created = os.stat(tmp).st_nlink == 2
     finally:
         _unlink_quiet(tmp)
     if created:

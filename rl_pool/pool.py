@@ -146,9 +146,10 @@ def open_pool(paths: Paths, requested: dict, initial_agent, lock_timeout: float 
             if not os.path.exists(paths.pool_json):
                 doc = cfg.to_json() | {"created": time.time()}
                 fsutil.create_exclusive(paths.pool_json, fsutil.dumps(doc))
-    except Timeout:
-        # The lock only saves duplicate work; the atomic create below is what counts.
-        log.warning("init lock %s busy for %.0fs; going on without it", paths.lock, lock_timeout)
+    except (Timeout, OSError, NotImplementedError) as exc:
+        # The lock only saves duplicate work; the atomic create below is what counts. On NFS
+        # without a lock daemon flock fails (ENOLCK/ENOSYS): go on without it.
+        log.warning("init lock %s unavailable (%s); going on without it", paths.lock, type(exc).__name__)
         fsutil.create_exclusive(paths.pool_json, fsutil.dumps(cfg.to_json() | {"created": time.time()}))
     cfg = PoolConfig.merged(requested, read_config(paths), where=f"pool {paths.root}")
     _ensure_initial(paths, cfg, initial_agent)
@@ -497,7 +498,12 @@ def barrier(paths: Paths, i: int, cfg: PoolConfig, me: int, like: Agent, quorum:
             next_liveness = now + 0.25
             why = [liveness.stale(m, i) for m in missing]
             if all(why):
-                reason = "went on without stale members: " + "; ".join(why)
+                # List again: a member may have deposited and then stopped since the last listing.
+                have = present(paths, i, cfg.pool_size)
+                reason = "went on without stale members: " + "; ".join(
+                    w for m, w in zip(missing, why, strict=True) if m not in have)
+                if len(have) == cfg.pool_size:
+                    reason = "complete"
                 break
         if now - t0 >= timeout:
             if len(have) >= quorum:

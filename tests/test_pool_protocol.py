@@ -207,3 +207,21 @@ def test_liveness_judges_change_not_clocks(tmp_path):
     assert "failed" in live.stale(1, 1)
     fsutil.write_json(paths.heartbeat(1), doc | {"host": pool.HOST, "pid": 2**22 + 12345, "beat": 3})
     assert "gone" in live.stale(1, 1)
+
+
+def test_barrier_lists_again_after_a_stale_verdict(tmp_path):
+    """A member that deposits and then stops between two polls is not left out."""
+    paths, cfg = make_pool(tmp_path / "p", pool_size=3)
+    _deposit(paths, 1, 0, 1.0)
+    _deposit(paths, 1, 1, 2.0)
+
+    class LateThenStopped(pool.Liveness):
+        def stale(self, m, iteration):
+            if not os.path.exists(paths.deposit_json(1, 2)):
+                _deposit(paths, 1, 2, 9.0)
+            return f"member {m} stopped"
+
+    res = pool.barrier(paths, 1, cfg, 0, _like(paths), quorum=2, timeout=30,
+                       liveness=LateThenStopped(paths, 60))
+    assert res.selection["member"] == 2 and res.selection["skipped"] == []
+    assert res.selection["quorum_reason"] == "complete"
