@@ -36,7 +36,7 @@ class PoolConfig:
     gamma: float = opt(1.0, "discount factor (Swimmer needs ~1: 0.99 traps it near 40)")
     baseline: str = opt("time", "baseline: leave-one-out time-indexed mean return, or none", ("time", "none"))
     optimizer: str = opt("adam", "step-size rule: Adam, or fixed-length normalised gradient", ("adam", "normalized"))
-    policy: str = opt("linear", "Beta shapes linear in normalised observations through softplus+1, "
+    policy: str = opt("linear-exp", "Beta shapes linear in normalised observations through softplus+1, "
                                 "or exp+1 (linear-exp)", ("linear", "linear-exp"))
     seed: int = opt(0, "root seed; every random draw derives from (seed, member, iteration)")
 
@@ -119,7 +119,7 @@ class MemberConfig:
     """Per-member settings: not in ``pool.json``, free to differ between members."""
 
     member: int = opt(0, "this member's index I in 0..N-1")
-    learning_rate: float = opt(0.01, "this member's step size (recorded in its deposits)")
+    learning_rate: float = opt(0.1, "this member's step size (recorded in its deposits)")
     iterations: int = opt(100, "the pool's target: stop once iteration K is selected")
     barrier_timeout: float = opt(1800.0, "seconds to wait at a barrier before going on with a quorum (or giving up)")
     heartbeat_timeout: float = opt(60.0, "a member whose heartbeat has not changed for this long is stale")

@@ -4,13 +4,13 @@
 # Ctrl-C (or SIGTERM) stops every member cleanly; running this again resumes
 # the pool where it is.
 #
-#   POOL_DIR=runs/swimmer N=2 BASE_LR=0.03 ./shell/pool.sh [extra rl-pool train options]
-#   LEARNING_RATES="0.003 0.03 0.03 0.05" ./shell/pool.sh --pool-size 4 ...
+#   POOL_DIR=runs/swimmer N=2 BASE_LR=0.1 ./shell/pool.sh [extra rl-pool train options]
+#   LEARNING_RATES="0.01 0.1 0.1 0.2" ./shell/pool.sh --pool-size 4 ...
 set -uo pipefail
 POOL_DIR="${POOL_DIR:-runs/swimmer-v5}"
 N="${N:-2}"
-BASE_LR="${BASE_LR:-0.03}"
-ITERATIONS="${ITERATIONS:-900}"
+BASE_LR="${BASE_LR:-0.1}"
+ITERATIONS="${ITERATIONS:-500}"
 if [ -n "${LEARNING_RATES:-}" ]; then
     read -r -a LRS <<< "$LEARNING_RATES"
 else

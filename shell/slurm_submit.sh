@@ -2,7 +2,7 @@
 # Submit an N-member pool as a SLURM job array (one array task per member).
 #
 #   POOL_DIR=/shared/runs/swimmer ./shell/slurm_submit.sh 4 --iterations 900
-#   LEARNING_RATES="0.003 0.03 0.03 0.06" POOL_DIR=... ./shell/slurm_submit.sh 4 --iterations 900
+#   LEARNING_RATES="0.01 0.1 0.1 0.2" POOL_DIR=... ./shell/slurm_submit.sh 4 --iterations 900
 #
 # Arguments after N go to `rl-pool train`. Run it from the repo (the tasks use
 # its .venv/bin/rl-pool unless RL_POOL is set); task output goes to

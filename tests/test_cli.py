@@ -39,7 +39,8 @@ def test_single_member_run_writes_the_pool_files(single_pool):
     assert hb["state"] == "finished"
     best = Agent.load(d / "best.npz")
     assert best.meta.env == "Swimmer-v5" and best.meta.max_episode_steps == 60
-    assert best.norm.count == 3 * 4 * 60  # every training observation, none from evaluation
+    best_it = json.loads((d / "best.json").read_text())["iteration"]
+    assert best.norm.count == best_it * 4 * 60  # every training observation so far, none from evaluation
 
 
 def test_status_json_has_the_contract_keys(single_pool):
@@ -52,7 +53,7 @@ def test_status_json_has_the_contract_keys(single_pool):
     for h in st["history"]:
         (m,) = h["members"]
         assert h["selected_member"] == 0 and m["eval_return"] == h["eval_return"]
-        assert m["learning_rate"] == 0.01 and m["train_steps"] == 4 * 60
+        assert m["learning_rate"] == 0.1 and m["train_steps"] == 4 * 60
         assert m["train_seconds"] > 0 and m["eval_seconds"] > 0 and m["wait_seconds"] >= 0
     table = rl_pool("status", single_pool, check=0).stdout
     assert "best:" in table and "finished" in table
@@ -69,7 +70,7 @@ def test_status_csv_history(single_pool, tmp_path):
     assert [float(r["eval_return"]) for r in rows] == [h["eval_return"] for h in st["history"]]
     assert [int(r["env_steps"]) for r in rows] == [k * (4 * 60 + 2 * 60) for k in (1, 2, 3)]
     assert float(rows[-1]["best_so_far"]) == st["best"]["eval_return"]
-    assert rows[0]["member0_learning_rate"] == "0.01"
+    assert rows[0]["member0_learning_rate"] == "0.1"
 
 
 def test_rerun_on_finished_pool_exits_at_once_and_larger_target_continues(single_pool, tmp_path):
