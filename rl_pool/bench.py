@@ -1,4 +1,4 @@
-"""Benchmarks that print figures (not timed tests): ``python -m rl_pool.bench {throughput,scaling}``.
+"""Benchmarks that print figures (not timed tests): ``python -m rl_pool.bench {throughput,scaling,evaluate}``.
 
 All figures of one run come from the same machine at the same time; compare
 them as ratios, since absolute times on a shared machine are noisy.
@@ -50,7 +50,7 @@ def throughput(args) -> None:
     agent, cfg = make_initial(cfg)
     env_list = [envs.make(cfg.env)[0] for _ in range(max(cfg.batch_episodes, cfg.eval_episodes))]
     t0 = time.perf_counter()
-    first = trainer.train(agent, env_list, cfg, 0.03, 0, 1)
+    first = trainer.train(agent, env_list, cfg, 0.1, 0, 1)
     cold = first.steps / (time.perf_counter() - t0)
     agent = first.agent
     plain, raw, member = [], [], []
@@ -59,7 +59,7 @@ def throughput(args) -> None:
         raw.append(_plain_loop(cfg.env, args.steps, unwrapped=True))
         steps = secs = 0.0
         while steps < args.steps:
-            r = trainer.train(agent, env_list, cfg, 0.03, 0, 2 + rep)
+            r = trainer.train(agent, env_list, cfg, 0.1, 0, 2 + rep)
             agent = r.agent
             steps += r.steps
             secs += r.seconds
@@ -80,7 +80,7 @@ def _run_pool(root: str, n: int, iterations: int, extra: list[str]) -> dict:
     t0 = time.time()
     for m in range(n):
         cmd = [sys.executable, "-m", "rl_pool", "train", "--pool-dir", root, "--pool-size", str(n),
-               "--member", str(m), "--iterations", str(iterations), "--learning-rate", "0.03",
+               "--member", str(m), "--iterations", str(iterations), "--learning-rate", "0.1",
                "--quiet", *extra]
         procs.append(subprocess.Popen(cmd, env=capped_environ(), stdout=subprocess.DEVNULL))
     for p in procs:
@@ -134,6 +134,20 @@ def scaling(args) -> None:
     print(f"  share of member time spent waiting: median {100 * statistics.median(many['wait_share']):.1f}%")
 
 
+def evaluation(args) -> None:
+    """``rl-pool evaluate`` on 1 worker vs W spawned workers, start-up included."""
+    from .evaluate import evaluate_bytes, resolve_agent
+
+    path, data = resolve_agent(args.agent)
+    one = evaluate_bytes(data, args.episodes, workers=1)
+    many = evaluate_bytes(data, args.episodes, workers=args.workers)
+    assert one["returns"] == many["returns"], "results must not depend on the number of workers"
+    print(f"{args.episodes} episodes of {path}: mean return {one['mean_return']:.2f}")
+    print(f"  1 worker (in process)            {one['seconds']:7.2f} s")
+    print(f"  {args.workers} spawned workers (incl. start-up) {many['seconds']:7.2f} s")
+    print(f"  speed-up                         {one['seconds'] / many['seconds']:7.2f}x   (target >= 1.7 for 2 workers)")
+
+
 def main(argv=None) -> None:
     cap_threads()
     p = argparse.ArgumentParser(prog="python -m rl_pool.bench")
@@ -152,6 +166,11 @@ def main(argv=None) -> None:
     s.add_argument("--eval-episodes", type=int, default=3)
     s.add_argument("--max-episode-steps", type=int, default=0)
     s.set_defaults(func=scaling)
+    e = sub.add_parser("evaluate")
+    e.add_argument("agent", help="agent .npz or pool directory")
+    e.add_argument("--episodes", type=int, default=160)
+    e.add_argument("--workers", type=int, default=2)
+    e.set_defaults(func=evaluation)
     args = p.parse_args(argv)
     args.func(args)
 

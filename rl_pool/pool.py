@@ -22,7 +22,6 @@ writer's decision stands and everyone adopts it.
 from __future__ import annotations
 
 import hashlib
-import json
 import logging
 import math
 import os
@@ -526,6 +525,3 @@ def barrier(paths: Paths, i: int, cfg: PoolConfig, me: int, like: Agent, quorum:
     doc, created = publish_selection(paths, selection, me)
     return BarrierResult(doc, created, time.monotonic() - t0)
 
-
-def json_dumps_line(obj) -> str:
-    return json.dumps(obj, sort_keys=True)

@@ -6,7 +6,6 @@ import os
 import time
 
 from . import fsutil, pool
-from .errors import UsageError
 
 
 def _read(path):
@@ -172,7 +171,3 @@ def _f(x):
 def _g(x):
     return "-" if x is None else f"{x:.3g}"
 
-
-def require_pool(pool_dir: str) -> None:
-    if not os.path.isdir(pool_dir):
-        raise UsageError(f"no pool directory at {pool_dir}")
