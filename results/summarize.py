@@ -43,6 +43,10 @@ def fmt(x, nd=1):
     return "-" if x is None else f"{x:.{nd}f}"
 
 
+def fmt_spread(v, nd=1):
+    return "-" if v is None else f"{fmt(v[0], nd)} [{fmt(v[1], nd)}, {fmt(v[2], nd)}]"
+
+
 def main(out, paths):
     import matplotlib
 
@@ -64,9 +68,8 @@ def main(out, paths):
     for c in cols:
         vals = [v for v in c if v is not None]
         med.append((statistics.median(vals), min(vals), max(vals)) if vals else None)
-    print(f"{'median [min, max]':>24}: " + "  ".join(
-        f"{m} min {fmt(v[0])} [{fmt(v[1])}, {fmt(v[2])}]" for m, v in zip(MARKS, med[:-1]))
-          + f"  time to {TARGET:.0f}: {fmt(med[-1][0], 0)} s [{fmt(med[-1][1], 0)}, {fmt(med[-1][2], 0)}]")
+    print(f"{'median [min, max]':>24}: " + "  ".join(f"{m} min {fmt_spread(v)}" for m, v in zip(MARKS, med[:-1]))
+          + f"  time to {TARGET:.0f}: {fmt_spread(med[-1], 0)} s")
     for a in (a1, a2):
         a.axhline(TARGET, color="grey", ls=":", lw=1)
         a.grid(alpha=0.3)

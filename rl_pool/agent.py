@@ -23,6 +23,26 @@ from .normalizer import NormState
 FORMAT = "rl-pool-agent"
 FORMAT_VERSION = 1
 ARRAYS = ("meta", "w", "obs_count", "obs_mean", "obs_m2", "opt_m", "opt_v", "opt_t")
+META_MAX_BYTES = 1 << 20
+NPY_HEADER_MAX = 4096
+
+
+def _parse_meta(meta_arr, source: str) -> AgentMeta:
+    if meta_arr.dtype.kind != "U" or meta_arr.shape != ():
+        raise AgentFileError(f"{source}: agent meta is not a JSON string")
+    try:
+        return AgentMeta.from_json(json.loads(str(meta_arr)))
+    except json.JSONDecodeError as exc:
+        raise AgentFileError(f"{source}: agent meta is not valid JSON ({exc})") from None
+    except AgentFileError as exc:
+        raise AgentFileError(f"{source}: {exc}") from None
+
+
+def _shapes(meta) -> dict:
+    """The shape of every numeric array of an agent with this meta."""
+    f, a = meta.obs_dim + 1, meta.act_dim
+    return {"w": (f, 2 * a), "obs_count": (), "obs_mean": (meta.obs_dim,), "obs_m2": (meta.obs_dim,),
+            "opt_m": (f, 2 * a), "opt_v": (f, 2 * a), "opt_t": ()}
 
 
 @dataclass(frozen=True)
@@ -158,30 +178,30 @@ class Agent:
 
     @classmethod
     def from_bytes(cls, data: bytes, source: str = "agent") -> Agent:
+        """Parse and check an agent file; :class:`AgentFileError` says why it is refused.
+
+        Nothing is unpickled, and no array is read before its size in the zip
+        directory fits the shape the meta implies, so a small hostile file
+        cannot make the reader allocate gigabytes.
+        """
         try:
             with np.load(io.BytesIO(data), allow_pickle=False) as z:
                 missing = [k for k in ARRAYS if k not in z.files]
                 if missing:
                     raise AgentFileError(f"{source}: not an rl-pool agent (missing {', '.join(missing)})")
-                arrays = {k: z[k] for k in ARRAYS}
+                sizes = {k: z.zip.getinfo(k + ".npy").file_size for k in ARRAYS}
+                if sizes["meta"] > META_MAX_BYTES:
+                    raise AgentFileError(f"{source}: agent meta is implausibly large ({sizes['meta']} bytes)")
+                meta = _parse_meta(z["meta"], source)
+                expect = _shapes(meta)
+                for key, shape in expect.items():
+                    if sizes[key] > 8 * int(np.prod(shape)) + NPY_HEADER_MAX:
+                        raise AgentFileError(f"{source}: array {key!r} is larger than its shape {shape} allows")
+                arrays = {k: z[k] for k in expect}
         except AgentFileError:
             raise
         except Exception as exc:  # zip errors, object arrays refused, truncation, ...
             raise AgentFileError(f"{source}: unreadable agent file ({type(exc).__name__}: {exc})") from None
-        meta_arr = arrays["meta"]
-        if meta_arr.dtype.kind != "U" or meta_arr.shape != ():
-            raise AgentFileError(f"{source}: agent meta is not a JSON string")
-        try:
-            meta = AgentMeta.from_json(json.loads(str(meta_arr)))
-        except json.JSONDecodeError as exc:
-            raise AgentFileError(f"{source}: agent meta is not valid JSON ({exc})") from None
-        except AgentFileError as exc:
-            raise AgentFileError(f"{source}: {exc}") from None
-        f, a = meta.obs_dim + 1, meta.act_dim
-        expect = {
-            "w": (f, 2 * a), "obs_count": (), "obs_mean": (meta.obs_dim,), "obs_m2": (meta.obs_dim,),
-            "opt_m": (f, 2 * a), "opt_v": (f, 2 * a), "opt_t": (),
-        }
         for key, shape in expect.items():
             arr = arrays[key]
             if arr.dtype.kind != "f":
@@ -192,9 +212,9 @@ class Agent:
                 raise AgentFileError(f"{source}: array {key!r} holds non-finite numbers")
         if arrays["obs_count"] < 0 or np.any(arrays["obs_m2"] < 0) or np.any(arrays["opt_v"] < 0):
             raise AgentFileError(f"{source}: negative count or variance")
-        norm = NormState(float(arrays["obs_count"]), arrays["obs_mean"].astype(np.float64), arrays["obs_m2"].astype(np.float64))
-        return cls(meta, arrays["w"].astype(np.float64), norm, arrays["opt_m"].astype(np.float64),
-                   arrays["opt_v"].astype(np.float64), float(arrays["opt_t"]))
+        f64 = {k: arrays[k].astype(np.float64) for k in expect}
+        norm = NormState(float(f64["obs_count"]), f64["obs_mean"], f64["obs_m2"])
+        return cls(meta, f64["w"], norm, f64["opt_m"], f64["opt_v"], float(f64["opt_t"]))
 
     @classmethod
     def load(cls, path: str | os.PathLike) -> Agent:

@@ -158,7 +158,7 @@ def build_parser() -> argparse.ArgumentParser:
     ev.add_argument("target", help="a pool directory (its best.npz) or an agent .npz")
     ev.add_argument("--episodes", type=int, default=10)
     ev.add_argument("--workers", type=int, default=1, help="worker processes (spawned, one math thread each)")
-    ev.add_argument("--seed", type=int, default=1_000_000, help="first episode's reset seed; episode k uses seed+k")
+    ev.add_argument("--seed", type=_seed, default=1_000_000, help="first episode's reset seed; episode k uses seed+k")
     ev.add_argument("--mode", choices=("mean", "sample"), default="mean", help="actions: Beta mean or samples")
     ev.add_argument("--worker", default=None, metavar="MODULE:CLASS",
                     help="a custom evaluation worker (subclass of rl_pool.evaluate.EvalWorker)")
@@ -169,12 +169,22 @@ def build_parser() -> argparse.ArgumentParser:
     rp.add_argument("target", help="a pool directory (its best.npz) or an agent .npz")
     rp.add_argument("--out", required=True, help="FILE.gif or FILE.mp4")
     rp.add_argument("--steps", type=int, default=0, help="steps to render (default: one episode)")
-    rp.add_argument("--seed", type=int, default=0)
+    rp.add_argument("--seed", type=_seed, default=0, help="the episode's reset seed")
     rp.add_argument("--fps", type=int, default=30)
     rp.add_argument("--width", type=int, default=480)
     rp.add_argument("--height", type=int, default=360)
     rp.set_defaults(func=cmd_replay)
     return p
+
+
+def _seed(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not an integer: {text!r}") from None
+    if value < 0:
+        raise argparse.ArgumentTypeError("must be >= 0")
+    return value
 
 
 def _float_list(text: str) -> list[float]:
@@ -187,7 +197,7 @@ def _float_list(text: str) -> list[float]:
 def main(argv=None) -> int:
     cap_threads()  # before numpy or jax is imported anywhere in this process
     os.environ.setdefault("MUJOCO_GL", "egl")
-    from .errors import UsageError
+    from .errors import Stopped, UsageError
 
     args = build_parser().parse_args(argv)
     try:
@@ -195,6 +205,14 @@ def main(argv=None) -> int:
     except UsageError as exc:
         sys.stderr.write(f"rl-pool: error: {exc}\n")
         return 2
+    except OSError as exc:
+        # a path the user gave that cannot be written or read (no such directory, permissions, full disk)
+        where = f" {exc.filename!r}" if exc.filename else ""
+        sys.stderr.write(f"rl-pool: error: {exc.strerror or exc}{where}\n")
+        return 2
+    except Stopped as exc:
+        sys.stderr.write(f"rl-pool: stopped by {exc}\n")
+        return 128 + exc.signum
     except KeyboardInterrupt:
         sys.stderr.write("rl-pool: interrupted\n")
         return 130

@@ -11,3 +11,13 @@ class EnvError(UsageError):
 
 class AgentFileError(UsageError):
     """An agent file that is unreadable, foreign, or inconsistent."""
+
+
+class Stopped(BaseException):
+    """SIGTERM/SIGINT/SIGHUP arrived; every file on disk is whole, so stopping anywhere is safe."""
+
+    def __init__(self, signum: int):
+        import signal
+
+        super().__init__(signal.Signals(signum).name)
+        self.signum = signum

@@ -149,3 +149,15 @@ def listdir(path) -> list[str]:
 
 def is_tmp(name: str) -> bool:
     return TMP_MARK in name and name.startswith(".")
+
+
+def tmp_owner(name: str) -> tuple[str, int] | None:
+    """``(host, pid)`` of the process that made a temp file, from its name."""
+    if not is_tmp(name):
+        return None
+    tail = name.rsplit(TMP_MARK, 1)[1]  # "{host}-{pid}-{rand}"; host may contain '-'
+    try:
+        host, pid, _ = tail.rsplit("-", 2)
+        return host, int(pid)
+    except ValueError:
+        return None

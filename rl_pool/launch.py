@@ -59,24 +59,29 @@ def launch(pool_dir: str, requested: dict, member_opts: dict, learning_rates: li
 
     procs = []
     env = capped_environ()
-    for m, lr in enumerate(lrs):
-        cmd = [sys.executable, "-m", "rl_pool", "train", "--pool-dir", paths.root, "--member", str(m),
-               "--learning-rate", repr(lr), "--quiet", *_args(requested | {"pool_size": n}),
-               *_args(member_opts)]
-        with open(os.path.join(paths.logs, pool.member_name(m) + ".out"), "ab") as out:
-            procs.append(subprocess.Popen(cmd, stdout=out, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
-                                          env=env, start_new_session=True))
-    print(f"launched {n} members on {cfg.env} in {paths.root}; learning rates "
-          + ", ".join(f"m{m}={lr:g}" for m, lr in enumerate(lrs)), flush=True)
-
     interrupted = False
+    # Members run in their own sessions, so the launcher must pass on every way it can be told
+    # to stop (Ctrl-C, kill, a closed terminal): otherwise they would train on unattended.
+    old = {s: signal.signal(s, _interrupt) for s in (signal.SIGTERM, signal.SIGHUP)}
     try:
+        for m, lr in enumerate(lrs):
+            cmd = [sys.executable, "-m", "rl_pool", "train", "--pool-dir", paths.root, "--member", str(m),
+                   "--learning-rate", repr(lr), "--quiet", *_args(requested | {"pool_size": n}),
+                   *_args(member_opts)]
+            with open(os.path.join(paths.logs, pool.member_name(m) + ".out"), "ab") as out:
+                procs.append(subprocess.Popen(cmd, stdout=out, stderr=subprocess.STDOUT,
+                                              stdin=subprocess.DEVNULL, env=env, start_new_session=True))
+        print(f"launched {n} members on {cfg.env} in {paths.root}; learning rates "
+              + ", ".join(f"m{m}={lr:g}" for m, lr in enumerate(lrs)), flush=True)
         codes = _watch(paths, procs, n, quiet, print_every)
     except KeyboardInterrupt:
         interrupted = True
-        print("\nstopping members (Ctrl-C again is not needed; deposits on disk are safe)...",
+        print("\nstopping members (deposits on disk are safe; run again to resume)...",
               file=sys.stderr, flush=True)
-        codes = _stop_all(procs, signal.SIGINT)
+        codes = _stop_all(procs, signal.SIGTERM)
+    finally:
+        for s, h in old.items():
+            signal.signal(s, h)
     st = status.status(paths.root)
     b = st["best"]
     print(f"iterations completed {st['iterations_completed']}; best "
@@ -88,6 +93,10 @@ def launch(pool_dir: str, requested: dict, member_opts: dict, learning_rates: li
     for m, c in failed:
         print(f"member {m} failed (exit {c}): {_why(paths, m)}", file=sys.stderr)
     return 1 if failed else 0
+
+
+def _interrupt(signum, frame):
+    raise KeyboardInterrupt
 
 
 def _watch(paths, procs, n, quiet, print_every) -> list[int]:

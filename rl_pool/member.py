@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import dataclasses
 import logging
+import math
 import os
 import signal
 import socket
@@ -21,19 +22,11 @@ import traceback
 from . import envs, pool, trainer
 from .agent import Agent, AgentMeta
 from .config import MemberConfig, PoolConfig
-from .errors import UsageError
+from .errors import Stopped, UsageError
 
 log = logging.getLogger("rl_pool")
 
 EXIT_OK, EXIT_FAILED, EXIT_USAGE, EXIT_BARRIER = 0, 1, 2, 3
-
-
-class Stopped(BaseException):
-    """SIGTERM/SIGINT arrived; every file on disk is whole, so stopping anywhere is safe."""
-
-    def __init__(self, signum: int):
-        super().__init__(signal.Signals(signum).name)
-        self.signum = signum
 
 
 _stopping = False
@@ -110,14 +103,18 @@ def run(pool_dir: str, requested: dict, mc: MemberConfig, quiet: bool = False) -
     _setup_logging(paths, me, quiet)
 
     last = pool.last_selected(paths)
+    # A killed writer's temp files sit where the pool was when it died: near the last selection.
+    pool.remove_dead_temps(paths, paths.root, paths.members,
+                           *(paths.iteration(k) for k in range(max(0, last - 2), last + 2)))
     if last >= mc.iterations:
         log.info("pool already at iteration %d (target %d): nothing to do", last, mc.iterations)
         return EXIT_OK
 
-    old = {s: signal.signal(s, _on_signal) for s in (signal.SIGTERM, signal.SIGINT)}
     hb = pool.Heartbeat(paths, me, interval=min(2.0, mc.heartbeat_timeout / 4),
                         extra={"learning_rate": mc.learning_rate, "target": mc.iterations})
+    old = {}
     try:
+        old = {s: signal.signal(s, _on_signal) for s in (signal.SIGTERM, signal.SIGINT, signal.SIGHUP)}
         hb.start()
         _loop(paths, cfg, mc, hb, last + 1)
     except Stopped as exc:
@@ -128,8 +125,8 @@ def run(pool_dir: str, requested: dict, mc: MemberConfig, quiet: bool = False) -
         log.error("%s", exc)
         hb.stop("failed", error=str(exc))
         return EXIT_BARRIER
-    except UsageError:
-        hb.stop("failed", error="bad input")
+    except UsageError as exc:
+        hb.stop("failed", error=str(exc))
         raise
     except BaseException as exc:
         tb = traceback.format_exc()
@@ -159,10 +156,18 @@ def _loop(paths: pool.Paths, cfg: PoolConfig, mc: MemberConfig, hb: pool.Heartbe
     log.info("member %d of %d on %s, lr %g, from iteration %d to %d (quorum %d)",
              me, cfg.pool_size, cfg.env, mc.learning_rate, first, mc.iterations, quorum)
 
+    pool.update_best(paths, pool.read_selected(paths, first - 1))  # in case a kill skipped it
     lr = _learning_rate_for(paths, cfg, mc, first)
-    for i in range(first, mc.iterations + 1):
+    i = first
+    while i <= mc.iterations:
+        if pool.read_selected(paths, i) is not None:
+            # Decided without us (we were stopped or slow): rejoin where the pool is now.
+            i = max(pool.last_selected(paths) + 1, i + 1)
+            log.warning("pool went on without this member; rejoining at iteration %d", i)
+            lr = _learning_rate_for(paths, cfg, mc, i)
+            continue
         os.makedirs(paths.iteration(i), exist_ok=True)
-        pool.remove_own_temps(paths, i, me)
+        pool.remove_dead_temps(paths, paths.iteration(i))
         if os.path.exists(paths.deposit_json(i, me)):
             log.info("iteration %d: own deposit already on disk; waiting for the others", i)
             mine = None
@@ -173,7 +178,7 @@ def _loop(paths: pool.Paths, cfg: PoolConfig, mc: MemberConfig, hb: pool.Heartbe
             tr = trainer.train(start, env_list, cfg, lr, me, i)
             hb.set(state="evaluating")
             ev = trainer.evaluate(tr.agent, env_list, cfg, i)
-            metrics = ev.summary() | {
+            metrics = _finite_or_null(ev.summary() | {
                 "learning_rate": lr,
                 "train_steps": tr.steps, "train_seconds": tr.seconds,
                 "train_return_mean": sum(tr.episode_returns) / len(tr.episode_returns),
@@ -181,7 +186,7 @@ def _loop(paths: pool.Paths, cfg: PoolConfig, mc: MemberConfig, hb: pool.Heartbe
                 "grad_norm": tr.grad_norms[-1],
                 "parent": {"iteration": i - 1, "member": prev.get("member")},
                 "host": socket.gethostname(), "pid": os.getpid(), "time": time.time(),
-            }
+            })
             pool.deposit(paths, i, me, tr.agent, metrics)
             mine = ev.mean
             hb.set(last_return=mine)
@@ -192,14 +197,25 @@ def _loop(paths: pool.Paths, cfg: PoolConfig, mc: MemberConfig, hb: pool.Heartbe
                                {"iteration": i, "member": me, "wait_seconds": res.waited,
                                 "resumed_at": time.time()}, sync_dir=False)
         sel = res.selection
-        if res.created:
-            pool.update_best(paths, sel)
-            if i - mc.keep_iterations >= 1:
-                pool.collect_garbage(paths, i - mc.keep_iterations)
+        pool.update_best(paths, sel)  # every member: a kill of the selection's writer must not lose it
+        if res.created and i - mc.keep_iterations >= 1:
+            pool.collect_garbage(paths, i - mc.keep_iterations)
         log.info("iteration %d: selected member %s (eval return %s); mine %s; waited %.3fs",
                  i, sel.get("member"), _fmt(sel.get("eval_return")), _fmt(mine), res.waited)
         lr = _next_learning_rate(paths, cfg, mc, i, lr)
         hb.set(selected=sel.get("member"), selected_return=sel.get("eval_return"), learning_rate=lr)
+        i += 1
+
+
+def _finite_or_null(doc):
+    """Non-finite numbers become null (JSON has no NaN); selection then skips the deposit."""
+    if isinstance(doc, dict):
+        return {k: _finite_or_null(v) for k, v in doc.items()}
+    if isinstance(doc, list):
+        return [_finite_or_null(v) for v in doc]
+    if isinstance(doc, float) and not math.isfinite(doc):
+        return None
+    return doc
 
 
 def _deposit_lr(paths: pool.Paths, i: int, m: int) -> float | None:

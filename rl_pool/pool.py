@@ -107,7 +107,9 @@ def read_config(paths: Paths) -> PoolConfig:
     if not os.path.exists(paths.pool_json):
         raise UsageError(f"{paths.root} is not an rl-pool pool (no pool.json)")
     try:
-        return PoolConfig.from_json(fsutil.read_json(paths.pool_json))
+        return PoolConfig.from_json(fsutil.read_json(paths.pool_json)).validate()
+    except UsageError as exc:
+        raise UsageError(f"{paths.pool_json} holds invalid settings ({exc})") from None
     except (OSError, ValueError, TypeError) as exc:
         raise UsageError(f"{paths.pool_json} is not a valid rl-pool pool config ({exc})") from None
 
@@ -221,7 +223,8 @@ def present(paths: Paths, i: int, pool_size: int) -> set[int]:
     out = set()
     for name in fsutil.listdir(paths.iteration(i)):
         mm = DEPOSIT_RE.match(name)
-        if mm and int(mm.group(1)) < pool_size:
+        # exact names only: "member-0001.json" is a stray, not member 1
+        if mm and int(mm.group(1)) < pool_size and name == member_name(int(mm.group(1))) + ".json":
             out.add(int(mm.group(1)))
     return out
 
@@ -301,21 +304,34 @@ def select(paths: Paths, i: int, pool_size: int, like: Agent, members: set[int],
 
 def publish_selection(paths: Paths, selection: dict, by: int) -> tuple[dict, bool]:
     """Create ``selected.json`` unless it exists; return what is on disk and whether we wrote it."""
+    i = selection["iteration"]
     doc = selection | {"selected_by": by, "time": time.time()}
-    created = fsutil.create_exclusive(paths.selected(selection["iteration"]), fsutil.dumps(doc))
-    on_disk = read_selected(paths, selection["iteration"])
-    return (on_disk if on_disk is not None else doc), created
+    created = fsutil.create_exclusive(paths.selected(i), fsutil.dumps(doc))
+    if created:
+        return doc, True
+    # Someone else decided first: adopt their decision, never our own.
+    try:
+        on_disk = fsutil.read_json(paths.selected(i), missing_retries=8)
+    except (OSError, ValueError) as exc:
+        raise RuntimeError(f"{paths.selected(i)} exists but cannot be read: {exc}") from None
+    if not isinstance(on_disk, dict) or on_disk.get("iteration") != i:
+        raise RuntimeError(f"{paths.selected(i)} is not a selection of iteration {i}")
+    return on_disk, False
 
 
-def update_best(paths: Paths, selection: dict) -> bool:
-    """Replace ``best.npz`` if this selection beats the best so far (written by the selection's creator)."""
-    ret = selection.get("eval_return")
+def update_best(paths: Paths, selection: dict | None) -> bool:
+    """Replace ``best.npz`` if this selection beats the best so far.
+
+    Idempotent, so every member calls it after every barrier: a member killed
+    right after writing ``selected.json`` cannot make the pool lose its best.
+    """
+    ret = None if selection is None else selection.get("eval_return")
     if ret is None:
         return False
     try:
         best = fsutil.read_json(paths.best_json)
-        if isinstance(best, dict) and isinstance(best.get("eval_return"), (int, float)) \
-                and best["eval_return"] >= ret:
+        if isinstance(best, dict) and isinstance(best.get("eval_return"), (int, float)) and (
+                best["eval_return"] > ret or (best["eval_return"] == ret and best.get("iteration", 0) <= selection["iteration"])):
             return False
     except (OSError, ValueError):
         pass
@@ -344,15 +360,22 @@ def collect_garbage(paths: Paths, i: int) -> int:
     if sel is None:
         return 0
     keep = os.path.basename(sel.get("agent", ""))
-    return _remove_matching(paths.iteration(i), lambda name: fsutil.is_tmp(name) or (
+    removed = _remove_matching(paths.iteration(i), lambda name: (
         name.endswith(".npz") and name.startswith("member-") and name != keep))
+    return removed + remove_dead_temps(paths, paths.iteration(i))
 
 
-def remove_own_temps(paths: Paths, i: int, m: int) -> int:
-    """Temp files a killed earlier run of member ``m`` left (they are never read)."""
-    prefix = "." + member_name(m)
-    return sum(_remove_matching(d, lambda name: name.startswith(prefix) and fsutil.is_tmp(name))
-               for d in (paths.iteration(i), paths.members))
+def remove_dead_temps(paths: Paths, *dirs: str) -> int:
+    """Temp files whose writer (named in the temp file's name) is a dead process on this host.
+
+    Temp files are never read, so leftovers of a killed writer are only clutter;
+    a live writer's temp file, or one from another host, is left alone.
+    """
+    def dead(name: str) -> bool:
+        owner = fsutil.tmp_owner(name)
+        return owner is not None and owner[0] == HOST.split(".")[0] and not pid_alive(owner[1])
+
+    return sum(_remove_matching(d, dead) for d in (dirs or (paths.root, paths.iteration(0), paths.members)))
 
 
 # ---------------------------------------------------------------- heartbeats
@@ -518,6 +541,8 @@ def barrier(paths: Paths, i: int, cfg: PoolConfig, me: int, like: Agent, quorum:
     if reason != "complete":
         log.warning("iteration %d: %s", i, reason)
     previous = read_selected(paths, i - 1)
+    if previous is None:
+        raise RuntimeError(f"iteration {i - 1} has no readable selection")
     selection = select(paths, i, cfg.pool_size, like, have, reason, previous)
     for s in selection["skipped"]:
         if s["reason"] != "missing":

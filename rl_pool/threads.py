@@ -19,7 +19,8 @@ THREAD_CAPS = {
     "MKL_NUM_THREADS": "1",
     "VECLIB_MAXIMUM_THREADS": "1",
     "NUMEXPR_NUM_THREADS": "1",
-    "XLA_FLAGS": "--xla_cpu_multi_thread_eigen=false intra_op_parallelism_threads=1",
+    # XLA's own thread pool has no flag; this keeps its Eigen kernels single-threaded.
+    "XLA_FLAGS": "--xla_cpu_multi_thread_eigen=false",
 }
 
 
@@ -33,7 +34,7 @@ def cap_threads(environ: dict | None = None) -> dict:
     for key, value in THREAD_CAPS.items():
         if key == "XLA_FLAGS":
             current = env.get(key, "")
-            if "intra_op_parallelism_threads" not in current:
+            if "xla_cpu_multi_thread_eigen" not in current:
                 env[key] = f"{current} {value}".strip()
         else:
             env.setdefault(key, value)

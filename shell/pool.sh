@@ -5,12 +5,18 @@
 # the pool where it is.
 #
 #   POOL_DIR=runs/swimmer N=2 BASE_LR=0.1 ./shell/pool.sh [extra rl-pool train options]
-#   LEARNING_RATES="0.01 0.1 0.1 0.2" ./shell/pool.sh --pool-size 4 ...
+#   N=4 LEARNING_RATES="0.01 0.1 0.1 0.2" ./shell/pool.sh ...
 set -uo pipefail
 POOL_DIR="${POOL_DIR:-runs/swimmer-v5}"
 N="${N:-2}"
 BASE_LR="${BASE_LR:-0.1}"
 ITERATIONS="${ITERATIONS:-500}"
+# rl-pool: $RL_POOL, else this repo's .venv, else whatever is on PATH
+HERE="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
+RL_POOL="${RL_POOL:-}"
+if [ -z "$RL_POOL" ]; then
+    if [ -x "$HERE/.venv/bin/rl-pool" ]; then RL_POOL="$HERE/.venv/bin/rl-pool"; else RL_POOL=rl-pool; fi
+fi
 if [ -n "${LEARNING_RATES:-}" ]; then
     read -r -a LRS <<< "$LEARNING_RATES"
 else
@@ -33,11 +39,13 @@ mkdir -p "$POOL_DIR/logs"
 pids=()
 stop() {
     echo "pool.sh: stopping ${#pids[@]} members..." >&2
-    kill -INT "${pids[@]}" 2>/dev/null
+    # SIGTERM, not SIGINT: bash starts background jobs with SIGINT ignored, so a member
+    # that has not yet installed its handler would miss an INT; it stops cleanly on TERM.
+    kill -TERM "${pids[@]}" 2>/dev/null
 }
 trap stop INT TERM
 for ((m = 0; m < N; m++)); do
-    rl-pool train --pool-dir "$POOL_DIR" --pool-size "$N" --member "$m" \
+    "$RL_POOL" train --pool-dir "$POOL_DIR" --pool-size "$N" --member "$m" \
         --learning-rate "${LRS[$m]}" --iterations "$ITERATIONS" --quiet "$@" \
         >> "$POOL_DIR/logs/member-$(printf %03d "$m").out" 2>&1 &
     pids+=($!)
@@ -56,5 +64,5 @@ for ((m = 0; m < N; m++)); do
         status=1
     fi
 done
-rl-pool status "$POOL_DIR" --last 5
+"$RL_POOL" status "$POOL_DIR" --last 5
 exit $status

@@ -107,3 +107,28 @@ def test_unbounded_or_discrete_action_spaces_are_refused():
         envs.make("CartPole-v1")
     with pytest.raises(EnvError, match="unknown"):
         envs.make("NoSuchEnv-v9")
+
+
+def test_hostile_sizes_are_refused_before_allocation():
+    import zipfile
+
+    # An entry that really is big (9 M zeros compress to a few kB) is refused from the zip directory.
+    huge = io.BytesIO()
+    np.savez_compressed(huge, **(_arrays(agent()) | {"w": np.zeros((3000, 3000))}))
+    assert len(huge.getvalue()) < 100_000
+    with pytest.raises(AgentFileError, match="larger than its shape"):
+        Agent.from_bytes(huge.getvalue())
+    # A header that claims 2.5e9 elements over a tiny payload is refused without allocating them.
+    with zipfile.ZipFile(io.BytesIO(agent().to_bytes())) as zf:
+        members = {n: zf.read(n) for n in zf.namelist()}
+    header = np.lib.format.header_data_from_array_1_0(np.zeros((9, 4)))
+    header["shape"] = (50_000, 50_000)
+    out = io.BytesIO()
+    np.lib.format.write_array_header_1_0(out, header)
+    members["w.npy"] = out.getvalue() + b"\0" * 64
+    fake = io.BytesIO()
+    with zipfile.ZipFile(fake, "w") as zf:
+        for n, b in members.items():
+            zf.writestr(n, b)
+    with pytest.raises(AgentFileError, match="unreadable"):
+        Agent.from_bytes(fake.getvalue())

@@ -73,12 +73,18 @@ def test_status_csv_history(single_pool, tmp_path):
     assert rows[0]["member0_learning_rate"] == "0.1"
 
 
-def test_rerun_on_finished_pool_exits_at_once_and_larger_target_continues(single_pool, tmp_path):
-    before = _tree(single_pool)
-    rl_pool("train", "--pool-dir", single_pool, "--iterations", 2, "--quiet", check=0)
-    after = _tree(single_pool)
-    assert {k for k in after if not k.startswith(("logs", "members"))} == \
-        {k for k in before if not k.startswith(("logs", "members"))}
+def test_rerun_on_finished_pool_changes_nothing_and_larger_target_continues(tmp_path):
+    d = tmp_path / "p"
+    rl_pool("train", "--pool-dir", d, "--iterations", 2, *SHORT, "--quiet", check=0)
+    data = {k: v for k, v in _tree(d).items() if not k.startswith(("logs", "members"))}
+    rl_pool("train", "--pool-dir", d, "--iterations", 2, "--quiet", check=0)
+    rl_pool("train", "--pool-dir", d, "--iterations", 1, "--quiet", check=0)
+    assert {k: v for k, v in _tree(d).items() if not k.startswith(("logs", "members"))} == data
+    assert "nothing to do" in (d / "logs/member-000.log").read_text()
+    rl_pool("train", "--pool-dir", d, "--iterations", 3, "--quiet", check=0)
+    st = json.loads(rl_pool("status", d, "--json", check=0).stdout)
+    assert st["iterations_completed"] == 3
+    assert json.loads((d / "iterations/000003/member-000.json").read_text())["parent"]["iteration"] == 2
 
 
 def test_status_before_any_iteration_has_null_best(tmp_path):

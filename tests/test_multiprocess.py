@@ -8,7 +8,7 @@ import time
 import numpy as np
 import pytest
 
-from rl_pool import Agent
+from rl_pool import Agent, pool
 
 from .conftest import SHORT, rl_pool, spawn
 
@@ -31,6 +31,9 @@ def history(d):
                 deps[m] = (doc["eval_return"], doc["eval_returns"], doc["agent_sha256"], doc["learning_rate"])
         out.append((sel["member"], sel["eval_return"], sel["agent_sha256"], deps))
         i += 1
+    best = json.loads((d / "best.json").read_text())
+    out.append(("best", best["iteration"], best["member"], best["eval_return"],
+                (d / "best.npz").read_bytes() == (d / best["agent"]).read_bytes()))
     return out
 
 
@@ -51,6 +54,7 @@ def reference(tmp_path_factory):
 
 def test_two_member_pool_end_to_end(reference):
     d, hist = reference
+    hist = hist[:-1]  # the last entry is best.json
     assert len(hist) == ITERS
     best = (None, float("-inf"))
     for i, (member, ret, _sha, deps) in enumerate(hist, start=1):
@@ -88,7 +92,9 @@ def test_same_settings_twice_give_the_same_history(reference, tmp_path):
     assert run_pool(tmp_path / "again") == hist
 
 
-def test_sigkill_and_restart_reproduces_the_uninterrupted_history(reference, tmp_path):
+@pytest.mark.parametrize("sig, state", [(signal.SIGKILL, "training"), (signal.SIGKILL, "waiting"),
+                                        (signal.SIGTERM, "training")])
+def test_kill_and_restart_reproduces_the_uninterrupted_history(reference, tmp_path, sig, state):
     _, hist = reference
     d = tmp_path / "killed"
     args = ["--pool-size", 2, "--iterations", ITERS, *SHORT, "--quiet", "--lr-adapt", 2]
@@ -102,17 +108,23 @@ def test_sigkill_and_restart_reproduces_the_uninterrupted_history(reference, tmp
             doc = json.loads(hb.read_text())
         except (OSError, ValueError):
             doc = {}
-        if doc.get("state") == "training" and (doc.get("iteration") or 0) >= 3:
-            m1.send_signal(signal.SIGKILL)
+        if doc.get("state") == state and (doc.get("iteration") or 0) >= 3:
+            m1.send_signal(sig)
             killed_at = doc["iteration"]
             break
-        time.sleep(0.002)
-    assert killed_at is not None, "member 1 never reached iteration 3"
+        time.sleep(0.001)
+    assert killed_at is not None, f"member 1 never was {state} in iteration >= 3"
     m1.wait()
-    assert m1.returncode == -signal.SIGKILL
+    if sig == signal.SIGTERM:  # a clean stop: exit 143, heartbeat says so
+        assert m1.returncode == 128 + signal.SIGTERM
+        hb_doc = json.loads(hb.read_text())
+        assert hb_doc["state"] == "stopped" and "SIGTERM" in hb_doc["error"]
+    else:
+        assert m1.returncode == -signal.SIGKILL
     assert m0.poll() is None  # member 0 waits for it: quorum 2 of 2
     # a killed writer may leave a temp file: plant one too, it must be ignored and cleaned
-    (d / f"iterations/{killed_at:06d}/.member-001.npz.tmp-host-1-deadbeef").write_bytes(b"half")
+    host = pool.HOST.split(".")[0]
+    (d / f"iterations/{killed_at:06d}/.member-001.npz.tmp-{host}-{m1.pid}-deadbeef").write_bytes(b"half")
     m1 = spawn("train", "--pool-dir", d, "--member", 1, "--learning-rate", 0.03, *args)
     for p in (m0, m1):
         _, err = p.communicate(timeout=240)
@@ -200,6 +212,52 @@ def test_launch_runs_the_pool_and_reports(tmp_path):
     st = json.loads(rl_pool("status", d, "--json", check=0).stdout)
     lrs = {m["member"]: m["learning_rate"] for h in st["history"] for m in h["members"]}
     assert lrs == {0: pytest.approx(0.002), 1: 0.02}
+
+
+def test_member_that_falls_behind_rejoins_the_current_iteration(tmp_path):
+    """A member frozen (SIGSTOP) while the pool goes on skips the decided iterations when it wakes."""
+    d = tmp_path / "frozen"
+    args = ["--pool-size", 2, "--iterations", 10, *SHORT, "--quorum", 1, "--heartbeat-timeout", 1, "--quiet"]
+    m0 = spawn("train", "--pool-dir", d, "--member", 0, *args)
+    m1 = spawn("train", "--pool-dir", d, "--member", 1, *args)
+    hb = d / "members/member-001.json"
+    deadline = time.time() + 120
+    while time.time() < deadline:
+        try:
+            doc = json.loads(hb.read_text())
+        except (OSError, ValueError):
+            doc = {}
+        if doc.get("state") == "training" and doc.get("iteration") == 2:
+            break
+        time.sleep(0.001)
+    m1.send_signal(signal.SIGSTOP)
+    while not (d / "iterations/000006/selected.json").exists() and time.time() < deadline:
+        time.sleep(0.01)
+    m1.send_signal(signal.SIGCONT)
+    for p in (m0, m1):
+        _, err = p.communicate(timeout=240)
+        assert p.returncode == 0, err
+    dep = sorted(i for i in range(1, 11) if (d / f"iterations/{i:06d}/member-001.json").exists())
+    # it finishes the iteration it was in, then rejoins where the pool is: no deposits in between
+    assert dep[:2] == [1, 2] and dep[-1] == 10
+    gap = set(range(3, 6)) & set(dep)
+    assert not gap, f"member 1 redid decided iterations {sorted(gap)}"
+    assert "rejoining at iteration" in (d / "logs/member-001.log").read_text()
+
+
+def test_launch_forwards_sigterm_to_its_members(tmp_path):
+    d = tmp_path / "term"
+    launcher = spawn("launch", "--pool-dir", d, "--pool-size", 2, "--iterations", 500, *SHORT)
+    deadline = time.time() + 120
+    while not (d / "iterations/000002/selected.json").exists() and time.time() < deadline:
+        time.sleep(0.01)
+    pids = [json.loads((d / f"members/member-{m:03d}.json").read_text())["pid"] for m in (0, 1)]
+    launcher.send_signal(signal.SIGTERM)
+    launcher.communicate(timeout=60)
+    assert launcher.returncode == 130
+    for m, pid in enumerate(pids):
+        assert not os.path.exists(f"/proc/{pid}") or "zombie" in open(f"/proc/{pid}/status").read().lower()
+        assert json.loads((d / f"members/member-{m:03d}.json").read_text())["state"] == "stopped"
 
 
 def test_launch_surfaces_a_failed_member(tmp_path):

@@ -72,7 +72,6 @@ def test_selection_is_argmax_over_valid_deposits(tmp_path):
     sel = pool.select(paths, 1, 3, _like(paths), have, "complete", pool.read_selected(paths, 0))
     assert sel["member"] == 1 and sel["eval_return"] == 12.5
     assert [c["member"] for c in sel["considered"]] == [0, 1, 2] and sel["skipped"] == []
-    assert pool.load_selected_agent  # selection is loadable once published:
     _, created = pool.publish_selection(paths, sel, by=0)
     assert created and pool.load_selected_agent(paths, 1).to_bytes() == agent(1).to_bytes()
 
@@ -81,7 +80,7 @@ def test_stray_files_are_ignored_and_temp_files_never_count(tmp_path):
     paths, _ = make_pool(tmp_path / "p", pool_size=2)
     d = paths.iteration(1)
     os.makedirs(d)
-    for name in ["member-007.json", "member-1.json", "notes.txt", "member-000.json.bak",
+    for name in ["member-007.json", "member-1.json", "member-0001.json", "notes.txt", "member-000.json.bak",
                  ".member-001.json.tmp-host-1-abc", "member-001.wait.json"]:
         open(os.path.join(d, name), "w").write("{}")
     assert pool.present(paths, 1, 2) == set()
@@ -160,13 +159,15 @@ def test_gc_keeps_selected_agent_and_all_json(tmp_path):
     paths, _ = make_pool(tmp_path / "p", pool_size=3)
     for m, r in enumerate([1.0, 7.0, 2.0]):
         _deposit(paths, 1, m, r)
-    open(os.path.join(paths.iteration(1), ".member-002.npz.tmp-h-1-x"), "w").close()
+    open(os.path.join(paths.iteration(1), f".member-002.npz.tmp-{pool.HOST.split('.')[0]}-{2**22 + 4321}-x"), "w").close()  # a dead writer's
+    live = f".member-000.json.tmp-{pool.HOST.split('.')[0]}-{os.getpid()}-y"
+    open(os.path.join(paths.iteration(1), live), "w").close()  # a live writer's: kept
     sel = pool.select(paths, 1, 3, _like(paths), {0, 1, 2}, "complete", pool.read_selected(paths, 0))
     pool.publish_selection(paths, sel, by=0)
     assert pool.collect_garbage(paths, 1) == 3
     names = sorted(os.listdir(paths.iteration(1)))
-    assert names == ["member-000.json", "member-001.json", "member-001.npz", "member-002.json",
-                     "selected.json"]
+    assert names == sorted([live, "member-000.json", "member-001.json", "member-001.npz",
+                            "member-002.json", "selected.json"])
 
 
 def test_update_best_only_on_improvement(tmp_path):
