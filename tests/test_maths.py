@@ -195,3 +195,17 @@ def test_adapted_learning_rate_rule():
     assert [adapted_learning_rate(3, 0, i, 1, 1, False, 1.5) for i in range(10)] == \
         [adapted_learning_rate(3, 0, i, 9, 1, False, 1.5) for i in range(10)]
     assert adapted_learning_rate(0, 0, 0, 1, 100.0, False, 4) <= LR_BOUNDS[1]
+
+
+def test_random_streams_common_for_evaluation_distinct_for_training():
+    from rl_pool.trainer import eval_streams, train_streams
+
+    s0, r0 = train_streams(7, 0, 3, 4)
+    s1, r1 = train_streams(7, 1, 3, 4)
+    s0b, r0b = train_streams(7, 0, 3, 4)
+    assert s0 == s0b and r0.random() == r0b.random()  # reproducible
+    assert s0 != s1 and r0.random() != r1.random()  # members explore differently
+    assert train_streams(7, 0, 4, 4)[0] != s0  # and differently each iteration
+    e3, _ = eval_streams(7, 3, 5)
+    assert e3 == eval_streams(7, 3, 5)[0] and e3 != eval_streams(7, 4, 5)[0]
+    assert not set(e3) & set(s0 + s1)  # evaluation episodes are not training episodes

@@ -73,7 +73,6 @@ def test_two_member_pool_end_to_end(reference):
                     assert deps[m][3] / prev_deps[prev_winner][3] in (pytest.approx(2.0), pytest.approx(0.5))
         sel = json.loads((d / f"iterations/{i:06d}/selected.json").read_text())
         assert sel["quorum_reason"] == "complete" and sel["skipped"] == []
-        # both members evaluated on the same episodes: same seeds, so the initial agent would tie
         if ret > best[1]:
             best = (i, ret)
     b = json.loads((d / "best.json").read_text())
