@@ -1,0 +1,28 @@
+"""The committed result still holds: the best Swimmer agent loads and swims >= 350 on fresh episodes."""
+
+import csv
+import json
+import os
+
+from rl_pool import Agent
+from rl_pool.evaluate import evaluate_bytes
+
+RESULTS = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "results", "swimmer-v5")
+
+
+def test_committed_best_agent_scores_at_least_350_on_fresh_episodes():
+    path = os.path.join(RESULTS, "best.npz")
+    agent = Agent.load(path)
+    assert agent.meta.env == "Swimmer-v5" and agent.meta.max_episode_steps == 1000
+    with open(path, "rb") as fh:
+        res = evaluate_bytes(fh.read(), episodes=4, workers=1, seed=2_000_000)
+    assert min(res["returns"]) >= 350, res["returns"]
+
+
+def test_committed_history_matches_best():
+    with open(os.path.join(RESULTS, "history.csv"), newline="") as fh:
+        rows = list(csv.DictReader(fh))
+    with open(os.path.join(RESULTS, "best.json")) as fh:
+        best = json.load(fh)
+    top = max(rows, key=lambda r: float(r["eval_return"]))
+    assert int(top["iteration"]) == best["iteration"] and float(top["eval_return"]) == best["eval_return"]
