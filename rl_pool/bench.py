@@ -19,8 +19,9 @@ from . import fsutil
 from .threads import cap_threads, capped_environ
 
 
-def _plain_loop(env_id: str, steps: int, unwrapped: bool) -> float:
+def _plain_loop(env_id: str, steps: int, unwrapped: bool, constant: bool = False) -> float:
     import gymnasium as gym
+    import numpy as np
 
     env = gym.make(env_id)
     if unwrapped:
@@ -28,10 +29,12 @@ def _plain_loop(env_id: str, steps: int, unwrapped: bool) -> float:
     env.reset(seed=0)
     env.action_space.seed(0)
     limit = gym.spec(env_id).max_episode_steps
+    zero = np.zeros(env.action_space.shape)
+    sample = (lambda: zero) if constant else env.action_space.sample
     t0 = time.perf_counter()
     k = 0
     for _ in range(steps):
-        _, _, term, trunc, _ = env.step(env.action_space.sample())
+        _, _, term, trunc, _ = env.step(sample())
         k += 1
         if term or trunc or (unwrapped and k >= limit):
             env.reset()
@@ -53,10 +56,11 @@ def throughput(args) -> None:
     first = trainer.train(agent, env_list, cfg, 0.1, 0, 1)
     cold = first.steps / (time.perf_counter() - t0)
     agent = first.agent
-    plain, raw, member = [], [], []
+    plain, raw, bare, member = [], [], [], []
     for rep in range(args.repeats):
         plain.append(_plain_loop(cfg.env, args.steps, unwrapped=False))
         raw.append(_plain_loop(cfg.env, args.steps, unwrapped=True))
+        bare.append(_plain_loop(cfg.env, args.steps, unwrapped=True, constant=True))
         steps = secs = 0.0
         while steps < args.steps:
             r = trainer.train(agent, env_list, cfg, 0.1, 0, 2 + rep)
@@ -64,15 +68,17 @@ def throughput(args) -> None:
             steps += r.steps
             secs += r.seconds
         member.append(steps / secs)
-    p, u, m = (statistics.median(x) for x in (plain, raw, member))
+    p, u, z, m = (statistics.median(x) for x in (plain, raw, bare, member))
     print(f"env {cfg.env}: {cfg.batch_episodes} envs in lockstep, {cfg.train_episodes} episodes per "
           f"iteration, median of {args.repeats} rounds of {args.steps} steps")
     print(f"  plain gymnasium env.step loop, random actions   {p:9.0f} steps/s")
     print(f"  same, on env.unwrapped (no wrappers)            {u:9.0f} steps/s")
+    print(f"  env.unwrapped, constant action (env cost only)  {z:9.0f} steps/s")
     print(f"  one member's training (rollouts + gradients)    {m:9.0f} steps/s")
     print(f"  first iteration incl. JIT compile               {cold:9.0f} steps/s")
     print(f"  ratio member / plain loop                       {m / p:9.2f}   (target >= 0.9)")
     print(f"  ratio member / unwrapped loop                   {m / u:9.2f}")
+    print(f"  ratio member / env cost only                    {m / z:9.2f}")
 
 
 def _run_pool(root: str, n: int, iterations: int, extra: list[str]) -> dict:
