@@ -113,7 +113,7 @@ def cmd_replay(args) -> int:
     from . import replay
 
     out = replay.replay_path(args.target, args.out, steps=args.steps, seed=args.seed, fps=args.fps,
-                             width=args.width, height=args.height)
+                             width=args.width, height=args.height, camera=args.camera)
     print(out)
     return 0
 
@@ -173,6 +173,7 @@ def build_parser() -> argparse.ArgumentParser:
     rp.add_argument("--fps", type=int, default=30)
     rp.add_argument("--width", type=int, default=480)
     rp.add_argument("--height", type=int, default=360)
+    rp.add_argument("--camera", default=None, help="a camera of the model (default: 'track' if it has one)")
     rp.set_defaults(func=cmd_replay)
     return p
 

@@ -14,7 +14,9 @@ from .errors import UsageError
 
 
 def replay_path(target: str, out: str, steps: int = 0, seed: int = 0, fps: int = 30,
-                width: int = 480, height: int = 360) -> str:
+                width: int = 480, height: int = 360, camera: str | None = None) -> str:
+    """Render one episode of the agent; ``camera``: a camera of the model (default: one
+    named "track" if the model has it, so a swimmer that travels stays in view)."""
     from .evaluate import resolve_agent
 
     ext = os.path.splitext(out)[1].lower()
@@ -34,6 +36,15 @@ def replay_path(target: str, out: str, steps: int = 0, seed: int = 0, fps: int =
                   width=width, height=height)
     try:
         env, _ = envs.make(agent.meta.env, kwargs, render_mode="rgb_array")
+        names = [env.model.camera(k).name for k in range(env.model.ncam)] if hasattr(env, "model") else []
+        if camera is not None and camera not in names:
+            raise UsageError(f"--camera {camera!r}: the model's cameras are {names}")
+        camera = camera or ("track" if "track" in names else None)
+        if camera is not None:
+            env.close()
+            env, _ = envs.make(agent.meta.env, kwargs | {"camera_name": camera}, render_mode="rgb_array")
+    except UsageError:
+        raise
     except Exception as exc:
         raise UsageError(f"cannot render {agent.meta.env} offscreen ({exc}); try MUJOCO_GL=osmesa") from None
     steps = steps or agent.meta.max_episode_steps

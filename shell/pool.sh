@@ -37,7 +37,9 @@ if [ "${#LRS[@]}" -ne "$N" ]; then
 fi
 mkdir -p "$POOL_DIR/logs"
 pids=()
+stopped=0
 stop() {
+    stopped=1
     echo "pool.sh: stopping ${#pids[@]} members..." >&2
     # SIGTERM, not SIGINT: bash starts background jobs with SIGINT ignored, so a member
     # that has not yet installed its handler would miss an INT; it stops cleanly on TERM.
@@ -59,10 +61,16 @@ for ((m = 0; m < N; m++)); do
         wait "${pids[$m]}"; rc=$?
         kill -0 "${pids[$m]}" 2>/dev/null || break
     done
-    if [ "$rc" -ne 0 ]; then
-        echo "pool.sh: member $m exited with $rc (see $POOL_DIR/logs/member-$(printf %03d "$m").log)" >&2
+    out="$POOL_DIR/logs/member-$(printf %03d "$m").out"
+    if [ "$rc" -ne 0 ] && [ "$stopped" -eq 0 ]; then
+        echo "pool.sh: member $m exited with $rc: $(tail -n 1 "$out" 2>/dev/null)" >&2
+        echo "pool.sh: (full output in $out and $POOL_DIR/logs/member-$(printf %03d "$m").log)" >&2
         status=1
     fi
 done
-"$RL_POOL" status "$POOL_DIR" --last 5
+"$RL_POOL" status "$POOL_DIR" --last 5 2>/dev/null
+if [ "$stopped" -eq 1 ]; then
+    echo "pool.sh: stopped; run the same command again to resume" >&2
+    exit 130
+fi
 exit $status

@@ -268,3 +268,33 @@ def test_launch_surfaces_a_failed_member(tmp_path):
     proc = rl_pool("launch", "--pool-dir", d, "--iterations", 3, "--barrier-timeout", 30)
     assert proc.returncode == 1
     assert "failed" in proc.stderr and "does not match the hash" in proc.stderr
+
+
+def test_shell_pool_script_stops_on_signal_and_resumes(tmp_path):
+    """shell/pool.sh: per-member learning rates from its bash array, TERM stops all, re-running resumes."""
+    import subprocess
+
+    from .conftest import ROOT
+
+    d = tmp_path / "shell"
+    env = dict(os.environ, POOL_DIR=str(d), N="2", LEARNING_RATES="0.02 0.2", ITERATIONS="500")
+    script = os.path.join(ROOT, "shell", "pool.sh")
+    proc = subprocess.Popen(["bash", script, *map(str, SHORT)], env=env, stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True)
+    deadline = time.time() + 120
+    while not (d / "iterations/000002/selected.json").exists() and time.time() < deadline:
+        time.sleep(0.01)
+    proc.send_signal(signal.SIGTERM)
+    _, err = proc.communicate(timeout=60)
+    assert proc.returncode == 130, err
+    for m in (0, 1):
+        assert json.loads((d / f"members/member-{m:03d}.json").read_text())["state"] == "stopped"
+    done = json.loads(rl_pool("status", d, "--json", check=0).stdout)["iterations_completed"]
+    env["ITERATIONS"] = str(done + 2)
+    again = subprocess.run(["bash", script, *map(str, SHORT)], env=env, capture_output=True, text=True,
+                           timeout=120)
+    assert again.returncode == 0, again.stderr
+    st = json.loads(rl_pool("status", d, "--json", check=0).stdout)
+    assert st["iterations_completed"] == done + 2
+    lrs = {m["member"]: m["learning_rate"] for h in st["history"] for m in h["members"]}
+    assert lrs == {0: 0.02, 1: 0.2}
