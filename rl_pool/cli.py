@@ -136,7 +136,7 @@ def build_parser() -> argparse.ArgumentParser:
     la.add_argument("--learning-rates", type=_float_list, default=None, metavar="LR0,LR1,...",
                     help="one learning rate per member (default: the first member at 1/10 of "
                          "--learning-rate, the others at --learning-rate)")
-    la.add_argument("--quiet", action="store_true", help="print only selected iterations")
+    la.add_argument("--quiet", action="store_true", help="no progress lines: only the start and the summary")
     _add_dataclass_options(la, PoolConfig)
     _add_dataclass_options(la, MemberConfig, skip=("member",))
     la.set_defaults(func=cmd_launch)

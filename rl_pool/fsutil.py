@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import errno
 import json
+import math
 import os
 import socket
 import time
@@ -22,10 +23,11 @@ TMP_MARK = ".tmp-"
 TRANSIENT = {errno.ESTALE, errno.EIO, errno.EINTR, errno.EAGAIN, errno.ETIMEDOUT}
 
 
-def tmp_name(path: str, tag: str = "") -> str:
+def tmp_name(path: str) -> str:
+    """``.{name}.tmp-{host}-{pid}-{random}``: unique, and names its writer (see :func:`tmp_owner`)."""
     d, base = os.path.split(os.fspath(path))
     host = socket.gethostname().split(".")[0]
-    return os.path.join(d, f".{base}{TMP_MARK}{tag}{host}-{os.getpid()}-{uuid.uuid4().hex[:8]}")
+    return os.path.join(d, f".{base}{TMP_MARK}{host}-{os.getpid()}-{uuid.uuid4().hex[:8]}")
 
 
 def _fsync_dir(d: str) -> None:
@@ -94,6 +96,17 @@ def create_exclusive(path, data: bytes) -> bool:
     if created:
         _fsync_dir(os.path.dirname(path))
     return created
+
+
+def finite_or_null(obj):
+    """``obj`` with every non-finite float (nested in dicts and lists) replaced by None."""
+    if isinstance(obj, dict):
+        return {k: finite_or_null(v) for k, v in obj.items()}
+    if isinstance(obj, list):
+        return [finite_or_null(v) for v in obj]
+    if isinstance(obj, float) and not math.isfinite(obj):
+        return None
+    return obj
 
 
 def dumps(obj) -> bytes:

@@ -43,18 +43,16 @@ def _args(opts: dict) -> list[str]:
 
 def launch(pool_dir: str, requested: dict, member_opts: dict, learning_rates: list[float] | None,
            base_lr: float | None, quiet: bool = False, print_every: float = 5.0) -> int:
-    from .config import PoolConfig
     from .member import check_arguments, make_initial
 
     paths = pool.Paths(pool_dir)
-    saved = pool.read_config(paths) if os.path.exists(paths.pool_json) else None
-    n = PoolConfig.merged(requested, saved, where=f"pool {paths.root}").pool_size
+    n = check_arguments(paths, requested, []).pool_size
     base = base_lr if base_lr is not None else MemberConfig.learning_rate
     lrs = learning_rates if learning_rates is not None else default_learning_rates(n, base)
     if len(lrs) != n:
         raise UsageError(f"--learning-rates has {len(lrs)} values for a pool of {n}")
-    members = [MemberConfig(**(member_opts | {"member": m, "learning_rate": lr})) for m, lr in enumerate(lrs)]
-    check_arguments(paths, requested, members)
+    for m, lr in enumerate(lrs):
+        MemberConfig(**(member_opts | {"member": m, "learning_rate": lr})).validate(n)
     cfg = pool.open_pool(paths, requested, make_initial)  # refuses a mismatched pool before any spawn
 
     procs = []
@@ -100,24 +98,24 @@ def _interrupt(signum, frame):
 
 
 def _watch(paths, procs, n, quiet, print_every) -> list[int]:
+    """Wait for the members, printing a progress line at most every ``print_every`` seconds."""
     shown = pool.last_selected(paths)
-    last_print = 0.0
+    printed, last_print = None, 0.0
     while True:
         codes = [p.poll() for p in procs]
         if any(c not in (None, 0) for c in codes) and any(c is None for c in codes):
             bad = next(m for m, c in enumerate(codes) if c not in (None, 0))
             print(f"member {bad} exited with {codes[bad]}: {_why(paths, bad)}; stopping the others",
                   file=sys.stderr, flush=True)
-            return _stop_all(procs, signal.SIGINT, keep=codes)
+            return _stop_all(procs, signal.SIGTERM, keep=codes)
         nxt = shown + 1
         while pool.read_selected(paths, nxt) is not None:
             shown, nxt = nxt, nxt + 1
         now = time.monotonic()
         done = all(c is not None for c in codes)
-        if shown >= 1 and (done or now - last_print >= print_every) and shown != getattr(_watch, "_printed", None):
+        if not quiet and shown >= 1 and shown != printed and (done or now - last_print >= print_every):
             print(_progress_line(paths, shown, n), flush=True)
-            _watch._printed = shown
-            last_print = now
+            printed, last_print = shown, now
         if done:
             return codes
         time.sleep(0.2)

@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import dataclasses
 import logging
-import math
 import os
 import signal
 import socket
@@ -26,7 +25,7 @@ from .errors import Stopped, UsageError
 
 log = logging.getLogger("rl_pool")
 
-EXIT_OK, EXIT_FAILED, EXIT_USAGE, EXIT_BARRIER = 0, 1, 2, 3
+EXIT_OK, EXIT_FAILED, EXIT_BARRIER = 0, 1, 3  # bad input (exit 2) is a UsageError for cli.main
 
 
 _stopping = False
@@ -54,12 +53,13 @@ def make_initial(cfg: PoolConfig):
     return Agent.initial(meta), cfg
 
 
-def check_arguments(paths: pool.Paths, requested: dict, members: list[MemberConfig]) -> None:
-    """Refuse bad arguments before anything is created or changed on disk."""
+def check_arguments(paths: pool.Paths, requested: dict, members: list[MemberConfig]) -> PoolConfig:
+    """Refuse bad arguments before anything is created or changed on disk; the merged pool config."""
     saved = pool.read_config(paths) if os.path.exists(paths.pool_json) else None
     cfg = PoolConfig.merged(requested, saved, where=f"pool {paths.root}")
     for mc in members:
         mc.validate(cfg.pool_size)
+    return cfg
 
 
 def _setup_logging(paths: pool.Paths, member: int, quiet: bool) -> None:
@@ -104,7 +104,7 @@ def run(pool_dir: str, requested: dict, mc: MemberConfig, quiet: bool = False) -
 
     last = pool.last_selected(paths)
     # A killed writer's temp files sit where the pool was when it died: near the last selection.
-    pool.remove_dead_temps(paths, paths.root, paths.members,
+    pool.remove_dead_temps(paths.root, paths.members,
                            *(paths.iteration(k) for k in range(max(0, last - 2), last + 2)))
     if last >= mc.iterations:
         log.info("pool already at iteration %d (target %d): nothing to do", last, mc.iterations)
@@ -156,7 +156,8 @@ def _loop(paths: pool.Paths, cfg: PoolConfig, mc: MemberConfig, hb: pool.Heartbe
     log.info("member %d of %d on %s, lr %g, from iteration %d to %d (quorum %d)",
              me, cfg.pool_size, cfg.env, mc.learning_rate, first, mc.iterations, quorum)
 
-    pool.update_best(paths, pool.read_selected(paths, first - 1))  # in case a kill skipped it
+    prev = pool.read_selected(paths, first - 1)
+    pool.update_best(paths, prev)  # in case a kill skipped it
     lr = _learning_rate_for(paths, cfg, mc, first)
     i = first
     while i <= mc.iterations:
@@ -165,20 +166,19 @@ def _loop(paths: pool.Paths, cfg: PoolConfig, mc: MemberConfig, hb: pool.Heartbe
             i = max(pool.last_selected(paths) + 1, i + 1)
             log.warning("pool went on without this member; rejoining at iteration %d", i)
             lr = _learning_rate_for(paths, cfg, mc, i)
+            prev = pool.read_selected(paths, i - 1)
             continue
         os.makedirs(paths.iteration(i), exist_ok=True)
-        pool.remove_dead_temps(paths, paths.iteration(i))
         if os.path.exists(paths.deposit_json(i, me)):
             log.info("iteration %d: own deposit already on disk; waiting for the others", i)
             mine = None
         else:
-            start = pool.load_selected_agent(paths, i - 1)
-            prev = pool.read_selected(paths, i - 1)
+            start = pool.load_selected_agent(paths, i - 1, prev)
             hb.set(state="training", iteration=i)
             tr = trainer.train(start, env_list, cfg, lr, me, i)
             hb.set(state="evaluating")
             ev = trainer.evaluate(tr.agent, env_list, cfg, i)
-            metrics = _finite_or_null(ev.summary() | {
+            metrics = ev.summary() | {
                 "learning_rate": lr,
                 "train_steps": tr.steps, "train_seconds": tr.seconds,
                 "train_return_mean": sum(tr.episode_returns) / len(tr.episode_returns),
@@ -186,7 +186,7 @@ def _loop(paths: pool.Paths, cfg: PoolConfig, mc: MemberConfig, hb: pool.Heartbe
                 "grad_norm": tr.grad_norms[-1],
                 "parent": {"iteration": i - 1, "member": prev.get("member")},
                 "host": socket.gethostname(), "pid": os.getpid(), "time": time.time(),
-            })
+            }
             pool.deposit(paths, i, me, tr.agent, metrics)
             mine = ev.mean
             hb.set(last_return=mine)
@@ -202,20 +202,10 @@ def _loop(paths: pool.Paths, cfg: PoolConfig, mc: MemberConfig, hb: pool.Heartbe
             pool.collect_garbage(paths, i - mc.keep_iterations)
         log.info("iteration %d: selected member %s (eval return %s); mine %s; waited %.3fs",
                  i, sel.get("member"), _fmt(sel.get("eval_return")), _fmt(mine), res.waited)
-        lr = _next_learning_rate(paths, cfg, mc, i, lr)
+        lr = _next_learning_rate(paths, cfg, mc, sel, lr)
         hb.set(selected=sel.get("member"), selected_return=sel.get("eval_return"), learning_rate=lr)
+        prev = sel
         i += 1
-
-
-def _finite_or_null(doc):
-    """Non-finite numbers become null (JSON has no NaN); selection then skips the deposit."""
-    if isinstance(doc, dict):
-        return {k: _finite_or_null(v) for k, v in doc.items()}
-    if isinstance(doc, list):
-        return [_finite_or_null(v) for v in doc]
-    if isinstance(doc, float) and not math.isfinite(doc):
-        return None
-    return doc
 
 
 def _deposit_lr(paths: pool.Paths, i: int, m: int) -> float | None:
@@ -226,15 +216,15 @@ def _deposit_lr(paths: pool.Paths, i: int, m: int) -> float | None:
     return float(lr) if isinstance(lr, (int, float)) and lr > 0 else None
 
 
-def _next_learning_rate(paths: pool.Paths, cfg: PoolConfig, mc: MemberConfig, i: int, own: float) -> float:
-    """This member's rate for iteration ``i + 1``, a function of iteration ``i``'s files only."""
-    if not mc.lr_adapt:
+def _next_learning_rate(paths: pool.Paths, cfg: PoolConfig, mc: MemberConfig, sel: dict | None,
+                        own: float) -> float:
+    """This member's rate after the selection ``sel`` of an iteration: a function of that iteration's files."""
+    if not mc.lr_adapt or sel is None:
         return mc.learning_rate
-    sel = pool.read_selected(paths, i) or {}
-    winner = sel.get("member")
-    won = winner == mc.member
+    i, winner = sel["iteration"], sel.get("member")
     winner_lr = _deposit_lr(paths, i, winner) if isinstance(winner, int) else None
-    return trainer.adapted_learning_rate(cfg.seed, mc.member, i, own, winner_lr, won, mc.lr_adapt)
+    return trainer.adapted_learning_rate(cfg.seed, mc.member, i, own, winner_lr, winner == mc.member,
+                                         mc.lr_adapt)
 
 
 def _learning_rate_for(paths: pool.Paths, cfg: PoolConfig, mc: MemberConfig, first: int) -> float:
@@ -242,7 +232,7 @@ def _learning_rate_for(paths: pool.Paths, cfg: PoolConfig, mc: MemberConfig, fir
     if not mc.lr_adapt or first <= 1:
         return mc.learning_rate
     own = _deposit_lr(paths, first - 1, mc.member) or mc.learning_rate
-    return _next_learning_rate(paths, cfg, mc, first - 1, own)
+    return _next_learning_rate(paths, cfg, mc, pool.read_selected(paths, first - 1), own)
 
 
 def _fmt(x) -> str:

@@ -142,16 +142,16 @@ def open_pool(paths: Paths, requested: dict, initial_agent, lock_timeout: float 
     _, cfg = initial_agent(cfg)
     for d in (paths.root, paths.iterations, paths.members, paths.logs):
         os.makedirs(d, exist_ok=True)
+    doc = fsutil.dumps(cfg.to_json() | {"created": time.time()})
     try:
         with FileLock(paths.lock, timeout=lock_timeout):
             if not os.path.exists(paths.pool_json):
-                doc = cfg.to_json() | {"created": time.time()}
-                fsutil.create_exclusive(paths.pool_json, fsutil.dumps(doc))
+                fsutil.create_exclusive(paths.pool_json, doc)
     except (Timeout, OSError, NotImplementedError) as exc:
-        # The lock only saves duplicate work; the atomic create below is what counts. On NFS
+        # The lock only saves duplicate work; the atomic create is what counts. On NFS
         # without a lock daemon flock fails (ENOLCK/ENOSYS): go on without it.
         log.warning("init lock %s unavailable (%s); going on without it", paths.lock, type(exc).__name__)
-        fsutil.create_exclusive(paths.pool_json, fsutil.dumps(cfg.to_json() | {"created": time.time()}))
+        fsutil.create_exclusive(paths.pool_json, doc)
     cfg = PoolConfig.merged(requested, read_config(paths), where=f"pool {paths.root}")
     _ensure_initial(paths, cfg, initial_agent)
     return cfg
@@ -195,9 +195,10 @@ def last_selected(paths: Paths) -> int:
     return -1
 
 
-def load_selected_agent(paths: Paths, i: int) -> Agent:
-    """The agent selected in iteration ``i``, checked against the hash in ``selected.json``."""
-    sel = read_selected(paths, i)
+def load_selected_agent(paths: Paths, i: int, sel: dict | None = None) -> Agent:
+    """The agent selected in iteration ``i``, checked against the hash in ``selected.json``
+    (``sel``: that file's content, if the caller has already read it)."""
+    sel = sel if sel is not None else read_selected(paths, i)
     if sel is None:
         raise RuntimeError(f"iteration {i} has no selection")
     path = paths.resolve(sel["agent"])
@@ -213,7 +214,8 @@ def deposit(paths: Paths, i: int, m: int, agent: Agent, metrics: dict) -> dict:
     os.makedirs(paths.iteration(i), exist_ok=True)
     data = agent.to_bytes()
     fsutil.atomic_write(paths.deposit_npz(i, m), data)
-    doc = {"iteration": i, "member": m, "agent_sha256": sha256(data), **metrics}
+    # Non-finite numbers are written as null (JSON has no NaN); selection then skips the deposit.
+    doc = fsutil.finite_or_null({"iteration": i, "member": m, "agent_sha256": sha256(data), **metrics})
     fsutil.write_json(paths.deposit_json(i, m), doc)
     return doc
 
@@ -330,11 +332,12 @@ def update_best(paths: Paths, selection: dict | None) -> bool:
         return False
     try:
         best = fsutil.read_json(paths.best_json)
-        if isinstance(best, dict) and isinstance(best.get("eval_return"), (int, float)) and (
-                best["eval_return"] > ret or (best["eval_return"] == ret and best.get("iteration", 0) <= selection["iteration"])):
-            return False
     except (OSError, ValueError):
-        pass
+        best = None
+    # Ties keep the earlier iteration, as status's best does.
+    if isinstance(best, dict) and isinstance(best.get("eval_return"), (int, float)) and \
+            (best["eval_return"], -best.get("iteration", 0)) >= (ret, -selection["iteration"]):
+        return False
     data = fsutil.read_bytes(paths.resolve(selection["agent"]))
     fsutil.atomic_write(paths.best_npz, data)
     fsutil.write_json(paths.best_json, {"iteration": selection["iteration"], "member": selection["member"],
@@ -362,11 +365,11 @@ def collect_garbage(paths: Paths, i: int) -> int:
     keep = os.path.basename(sel.get("agent", ""))
     removed = _remove_matching(paths.iteration(i), lambda name: (
         name.endswith(".npz") and name.startswith("member-") and name != keep))
-    return removed + remove_dead_temps(paths, paths.iteration(i))
+    return removed + remove_dead_temps(paths.iteration(i))
 
 
-def remove_dead_temps(paths: Paths, *dirs: str) -> int:
-    """Temp files whose writer (named in the temp file's name) is a dead process on this host.
+def remove_dead_temps(*dirs: str) -> int:
+    """Temp files in ``dirs`` whose writer (named in the temp file's name) is a dead process on this host.
 
     Temp files are never read, so leftovers of a killed writer are only clutter;
     a live writer's temp file, or one from another host, is left alone.
@@ -375,7 +378,7 @@ def remove_dead_temps(paths: Paths, *dirs: str) -> int:
         owner = fsutil.tmp_owner(name)
         return owner is not None and owner[0] == HOST.split(".")[0] and not pid_alive(owner[1])
 
-    return sum(_remove_matching(d, dead) for d in (dirs or (paths.root, paths.iteration(0), paths.members)))
+    return sum(_remove_matching(d, dead) for d in dirs)
 
 
 # ---------------------------------------------------------------- heartbeats
@@ -459,8 +462,8 @@ class Liveness:
         self.paths, self.timeout = paths, timeout
         self.seen: dict[int, tuple] = {}
 
-    def stale(self, m: int, iteration: int) -> str | None:
-        """Why member ``m`` is not coming to ``iteration``'s barrier, or None if it may."""
+    def stale(self, m: int) -> str | None:
+        """Why member ``m`` is not coming to the barrier, or None if it may."""
         hb = read_heartbeat(self.paths, m)
         now = time.monotonic()
         key = None if hb is None else (hb.get("pid"), hb.get("host"), hb.get("beat"))
@@ -518,7 +521,7 @@ def barrier(paths: Paths, i: int, cfg: PoolConfig, me: int, like: Agent, quorum:
         missing = sorted(set(range(cfg.pool_size)) - have)
         if len(have) >= quorum and now >= next_liveness:
             next_liveness = now + 0.25
-            why = [liveness.stale(m, i) for m in missing]
+            why = [liveness.stale(m) for m in missing]
             if all(why):
                 # List again: a member may have deposited and then stopped since the last listing.
                 have = present(paths, i, cfg.pool_size)

@@ -195,19 +195,19 @@ def test_atomic_write_leaves_no_temp_and_create_exclusive_is_once(tmp_path):
 def test_liveness_judges_change_not_clocks(tmp_path):
     paths, _ = make_pool(tmp_path / "p", pool_size=2)
     live = pool.Liveness(paths, timeout=0.2)
-    assert live.stale(1, 1) is None  # never seen: not stale until the timeout passes
+    assert live.stale(1) is None  # never seen: not stale until the timeout passes
     import time
 
     time.sleep(0.25)
-    assert "unchanged" in live.stale(1, 1)
+    assert "unchanged" in live.stale(1)
     # A heartbeat from another host with a wildly wrong clock, but changing: alive.
     doc = {"member": 1, "pid": 1, "host": "elsewhere", "beat": 1, "state": "training", "time": 0}
     fsutil.write_json(paths.heartbeat(1), doc)
-    assert live.stale(1, 1) is None
+    assert live.stale(1) is None
     fsutil.write_json(paths.heartbeat(1), doc | {"state": "failed", "beat": 2})
-    assert "failed" in live.stale(1, 1)
+    assert "failed" in live.stale(1)
     fsutil.write_json(paths.heartbeat(1), doc | {"host": pool.HOST, "pid": 2**22 + 12345, "beat": 3})
-    assert "gone" in live.stale(1, 1)
+    assert "gone" in live.stale(1)
 
 
 def test_barrier_lists_again_after_a_stale_verdict(tmp_path):
@@ -217,7 +217,7 @@ def test_barrier_lists_again_after_a_stale_verdict(tmp_path):
     _deposit(paths, 1, 1, 2.0)
 
     class LateThenStopped(pool.Liveness):
-        def stale(self, m, iteration):
+        def stale(self, m):
             if not os.path.exists(paths.deposit_json(1, 2)):
                 _deposit(paths, 1, 2, 9.0)
             return f"member {m} stopped"
