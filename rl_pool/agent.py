@@ -21,28 +21,34 @@ from .errors import AgentFileError
 from .normalizer import NormState
 
 FORMAT = "rl-pool-agent"
-FORMAT_VERSION = 1
-ARRAYS = ("meta", "w", "obs_count", "obs_mean", "obs_m2", "opt_m", "opt_v", "opt_t")
-META_MAX_BYTES = 1 << 20
+#: Format 2: named parameter arrays (``param.NAME``, ``adam_m.NAME``, ``adam_v.NAME``) and a policy spec
+#: object; format 1 (one matrix ``w``, policy ``linear`` / ``linear-exp``) is still read.
+FORMAT_VERSION = 2
+READS_VERSIONS = (1, 2)
+NORM_ARRAYS = ("obs_count", "obs_mean", "obs_m2")
+META_MAX_BYTES = 1 << 16
 NPY_HEADER_MAX = 4096
+#: Zip bookkeeping per array (local header + central directory entry, names included), generously.
+ZIP_ENTRY_MAX = 512
 
 
-def _parse_meta(meta_arr, source: str) -> AgentMeta:
-    if meta_arr.dtype.kind != "U" or meta_arr.shape != ():
-        raise AgentFileError(f"{source}: agent meta is not a JSON string")
-    try:
-        return AgentMeta.from_json(json.loads(str(meta_arr)))
-    except json.JSONDecodeError as exc:
-        raise AgentFileError(f"{source}: agent meta is not valid JSON ({exc})") from None
-    except AgentFileError as exc:
-        raise AgentFileError(f"{source}: {exc}") from None
+def array_shapes(meta: AgentMeta, version: int = FORMAT_VERSION) -> dict[str, tuple[int, ...]]:
+    """The name and shape of every numeric array in an agent file with this meta."""
+    pshapes = policy.param_shapes(meta.spec, meta.obs_dim, meta.act_dim)
+    out: dict[str, tuple[int, ...]] = {"obs_count": (), "obs_mean": (meta.obs_dim,),
+                                       "obs_m2": (meta.obs_dim,), "opt_t": ()}
+    if version == 1:
+        return out | {"w": pshapes["w"], "opt_m": pshapes["w"], "opt_v": pshapes["w"]}
+    for prefix in ("param", "adam_m", "adam_v"):
+        out |= {f"{prefix}.{k}": v for k, v in pshapes.items()}
+    return out
 
 
-def _shapes(meta) -> dict:
-    """The shape of every numeric array of an agent with this meta."""
-    f, a = meta.obs_dim + 1, meta.act_dim
-    return {"w": (f, 2 * a), "obs_count": (), "obs_mean": (meta.obs_dim,), "obs_m2": (meta.obs_dim,),
-            "opt_m": (f, 2 * a), "opt_v": (f, 2 * a), "opt_t": ()}
+def max_file_bytes(meta: AgentMeta) -> int:
+    """An upper bound on the size of a well-formed agent file with this meta (a cap for readers)."""
+    shapes = array_shapes(meta)
+    arrays = sum(8 * int(np.prod(s)) + NPY_HEADER_MAX + ZIP_ENTRY_MAX for s in shapes.values())
+    return arrays + META_MAX_BYTES + NPY_HEADER_MAX + ZIP_ENTRY_MAX + 4096
 
 
 @dataclass(frozen=True)
@@ -56,7 +62,7 @@ class AgentMeta:
     act_dim: int
     action_low: tuple
     action_high: tuple
-    policy: str = "linear"
+    spec: policy.PolicySpec = field(default_factory=policy.PolicySpec)
 
     def to_json(self) -> dict:
         return {
@@ -69,15 +75,27 @@ class AgentMeta:
             "act_dim": self.act_dim,
             "action_low": list(self.action_low),
             "action_high": list(self.action_high),
-            "policy": self.policy,
+            "policy": self.spec.to_json(),
         }
 
     @classmethod
     def from_json(cls, d) -> AgentMeta:
+        return cls.from_json_versioned(d)[0]
+
+    @classmethod
+    def from_json_versioned(cls, d) -> tuple[AgentMeta, int]:
         if not isinstance(d, dict) or d.get("format") != FORMAT:
             raise AgentFileError("not an rl-pool agent (meta has no rl-pool format tag)")
-        if d.get("version") != FORMAT_VERSION:
-            raise AgentFileError(f"agent format version {d.get('version')!r}, this rl-pool reads {FORMAT_VERSION}")
+        version = d.get("version")
+        if version not in READS_VERSIONS:
+            raise AgentFileError(f"agent format version {version!r}, this rl-pool reads "
+                                 + " and ".join(map(str, READS_VERSIONS)))
+        try:
+            spec = policy.PolicySpec.from_json(d["policy"])
+        except (KeyError, TypeError, ValueError) as exc:
+            raise AgentFileError(f"agent policy is not one rl-pool knows: {exc}") from None
+        if version == 1 and spec.kind != "linear":
+            raise AgentFileError("agent format 1 holds linear policies only")
         try:
             meta = cls(
                 env=str(d["env"]),
@@ -87,41 +105,46 @@ class AgentMeta:
                 act_dim=int(d["act_dim"]),
                 action_low=tuple(float(x) for x in d["action_low"]),
                 action_high=tuple(float(x) for x in d["action_high"]),
-                policy=str(d["policy"]),
+                spec=spec,
             )
         except (KeyError, TypeError, ValueError) as exc:
             raise AgentFileError(f"agent meta is incomplete: {exc}") from None
-        if meta.policy not in policy.POLICIES:
-            raise AgentFileError(f"unknown policy kind {meta.policy!r}")
         if len(meta.action_low) != meta.act_dim or len(meta.action_high) != meta.act_dim:
             raise AgentFileError("agent action bounds do not match its action dimension")
         if not all(math.isfinite(lo) and math.isfinite(hi) and hi > lo
                    for lo, hi in zip(meta.action_low, meta.action_high, strict=True)):
             raise AgentFileError("agent action bounds are not finite low < high")
-        if meta.obs_dim <= 0 or meta.act_dim <= 0 or meta.max_episode_steps <= 0:
-            raise AgentFileError("agent dimensions must be positive")
-        return meta
+        if not (0 < meta.obs_dim <= 100_000 and 0 < meta.act_dim <= 10_000 and meta.max_episode_steps > 0):
+            raise AgentFileError("agent dimensions must be positive (and plausible)")
+        return meta, version
 
 
 @dataclass(frozen=True)
 class Agent:
-    """A Beta policy with its normaliser. ``w`` is ``[obs_dim + 1, 2 * act_dim]``."""
+    """A Beta policy (``params``: named arrays, see :mod:`rl_pool.policy`) with its normaliser
+    and optimiser state (Adam moments named like ``params``)."""
 
     meta: AgentMeta
-    w: np.ndarray
+    params: dict
     norm: NormState
-    opt_m: np.ndarray = field(repr=False, default=None)
-    opt_v: np.ndarray = field(repr=False, default=None)
+    opt_m: dict = field(repr=False, default=None)
+    opt_v: dict = field(repr=False, default=None)
     opt_t: float = 0.0
 
     # ----- construction -------------------------------------------------
     @classmethod
-    def initial(cls, meta: AgentMeta) -> Agent:
-        w = policy.init_params(meta.obs_dim, meta.act_dim)
-        return cls(meta, w, normalizer.init(meta.obs_dim), np.zeros_like(w), np.zeros_like(w), 0.0)
+    def initial(cls, meta: AgentMeta, seed: int = 0) -> Agent:
+        """The iteration-0 agent: initial parameters from ``seed``, empty normaliser and moments."""
+        params = policy.init_params(meta.spec, meta.obs_dim, meta.act_dim, seed)
+        zeros = {k: np.zeros_like(v) for k, v in params.items()}
+        return cls(meta, params, normalizer.init(meta.obs_dim), zeros, dict(zeros), 0.0)
 
     def evolve(self, **changes) -> Agent:
         return replace(self, **changes)
+
+    @property
+    def spec(self) -> policy.PolicySpec:
+        return self.meta.spec
 
     @property
     def low(self) -> np.ndarray:
@@ -137,7 +160,7 @@ class Agent:
 
     def beta_params(self, obs):
         """``(alpha, beta)`` for an observation; each ``[act_dim]`` (or ``[n, act_dim]`` for a batch)."""
-        return policy.beta_params(self.w, self.normalize(obs), policy=self.meta.policy)
+        return policy.beta_params(self.params, self.normalize(obs), self.spec)
 
     def act(self, obs, rng: np.random.Generator | None = None, deterministic: bool = True) -> np.ndarray:
         """An action in env units: the Beta mean if ``deterministic``, else a sample drawn from ``rng``."""
@@ -151,23 +174,20 @@ class Agent:
     def log_prob(self, obs, action) -> np.ndarray:
         """``sum_j [log Beta(u_j; a_j, b_j) - log(high_j - low_j)]`` with ``u`` the action in (0, 1)."""
         u = policy.to_unit(np.asarray(action, dtype=np.float64), self.low, self.high)
-        logp = policy.log_prob_unit(self.w, self.normalize(obs), u, policy=self.meta.policy)
+        logp = policy.log_prob_unit(self.params, self.normalize(obs), u, self.spec)
         return logp - np.log(self.high - self.low).sum()
 
     # ----- files ----------------------------------------------------------
     def to_bytes(self) -> bytes:
+        f64 = lambda a: np.asarray(a, dtype=np.float64)  # noqa: E731
+        arrays = {"meta": np.array(json.dumps(self.meta.to_json(), sort_keys=True)),
+                  "obs_count": np.array(self.norm.count, dtype=np.float64),
+                  "obs_mean": f64(self.norm.mean), "obs_m2": f64(self.norm.m2),
+                  "opt_t": np.array(self.opt_t, dtype=np.float64)}
+        for prefix, tree in (("param", self.params), ("adam_m", self.opt_m), ("adam_v", self.opt_v)):
+            arrays |= {f"{prefix}.{k}": f64(tree[k]) for k in sorted(self.params)}
         buf = io.BytesIO()
-        np.savez(
-            buf,
-            meta=np.array(json.dumps(self.meta.to_json(), sort_keys=True)),
-            w=np.asarray(self.w, dtype=np.float64),
-            obs_count=np.array(self.norm.count, dtype=np.float64),
-            obs_mean=np.asarray(self.norm.mean, dtype=np.float64),
-            obs_m2=np.asarray(self.norm.m2, dtype=np.float64),
-            opt_m=np.asarray(self.opt_m, dtype=np.float64),
-            opt_v=np.asarray(self.opt_v, dtype=np.float64),
-            opt_t=np.array(self.opt_t, dtype=np.float64),
-        )
+        np.savez(buf, **arrays)
         return buf.getvalue()
 
     def save(self, path: str | os.PathLike) -> None:
@@ -178,7 +198,7 @@ class Agent:
 
     @classmethod
     def from_bytes(cls, data: bytes, source: str = "agent") -> Agent:
-        """Parse and check an agent file; :class:`AgentFileError` says why it is refused.
+        """Parse and check an agent file (format 1 or 2); :class:`AgentFileError` says why it is refused.
 
         Nothing is unpickled, and no array is read before its size in the zip
         directory fits the shape the meta implies, so a small hostile file
@@ -186,16 +206,26 @@ class Agent:
         """
         try:
             with np.load(io.BytesIO(data), allow_pickle=False) as z:
-                missing = [k for k in ARRAYS if k not in z.files]
+                if "meta" not in z.files:
+                    raise AgentFileError(f"{source}: not an rl-pool agent (missing meta)")
+                if z.zip.getinfo("meta.npy").file_size > META_MAX_BYTES:
+                    raise AgentFileError(f"{source}: agent meta is implausibly large")
+                meta_arr = z["meta"]
+                if meta_arr.dtype.kind != "U" or meta_arr.shape != ():
+                    raise AgentFileError(f"{source}: agent meta is not a JSON string")
+                try:
+                    meta, version = AgentMeta.from_json_versioned(json.loads(str(meta_arr)))
+                except json.JSONDecodeError as exc:
+                    raise AgentFileError(f"{source}: agent meta is not valid JSON ({exc})") from None
+                except AgentFileError as exc:
+                    raise AgentFileError(f"{source}: {exc}") from None
+                expect = array_shapes(meta, version)
+                missing = [k for k in expect if k not in z.files]
                 if missing:
                     raise AgentFileError(f"{source}: not an rl-pool agent (missing {', '.join(missing)})")
-                sizes = {k: z.zip.getinfo(k + ".npy").file_size for k in ARRAYS}
-                if sizes["meta"] > META_MAX_BYTES:
-                    raise AgentFileError(f"{source}: agent meta is implausibly large ({sizes['meta']} bytes)")
-                meta = _parse_meta(z["meta"], source)
-                expect = _shapes(meta)
                 for key, shape in expect.items():
-                    if sizes[key] > 8 * int(np.prod(shape)) + NPY_HEADER_MAX:
+                    size = z.zip.getinfo(key + ".npy").file_size
+                    if size > 8 * int(np.prod(shape)) + NPY_HEADER_MAX:
                         raise AgentFileError(f"{source}: array {key!r} is larger than its shape {shape} allows")
                 arrays = {k: z[k] for k in expect}
         except AgentFileError:
@@ -210,11 +240,18 @@ class Agent:
                 raise AgentFileError(f"{source}: array {key!r} has shape {arr.shape}, expected {shape}")
             if not np.all(np.isfinite(arr)):
                 raise AgentFileError(f"{source}: array {key!r} holds non-finite numbers")
-        if arrays["obs_count"] < 0 or np.any(arrays["obs_m2"] < 0) or np.any(arrays["opt_v"] < 0):
-            raise AgentFileError(f"{source}: negative count or variance")
         f64 = {k: arrays[k].astype(np.float64) for k in expect}
+        if version == 1:
+            params, m, v = {"w": f64["w"]}, {"w": f64["opt_m"]}, {"w": f64["opt_v"]}
+        else:
+            names = policy.param_shapes(meta.spec, meta.obs_dim, meta.act_dim)
+            params = {k: f64[f"param.{k}"] for k in names}
+            m = {k: f64[f"adam_m.{k}"] for k in names}
+            v = {k: f64[f"adam_v.{k}"] for k in names}
+        if f64["obs_count"] < 0 or np.any(f64["obs_m2"] < 0) or any(np.any(a < 0) for a in v.values()):
+            raise AgentFileError(f"{source}: negative count or variance")
         norm = NormState(float(f64["obs_count"]), f64["obs_mean"], f64["obs_m2"])
-        return cls(meta, f64["w"], norm, f64["opt_m"], f64["opt_v"], float(f64["opt_t"]))
+        return cls(meta, params, norm, m, v, float(f64["opt_t"]))
 
     @classmethod
     def load(cls, path: str | os.PathLike) -> Agent:

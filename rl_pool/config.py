@@ -7,13 +7,15 @@ else the default here; options set explicitly must agree with the pool.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 from dataclasses import MISSING, asdict, dataclass, field, fields
 
 from .errors import UsageError
 
-PROTOCOL = 1
+#: 2: policy family (policy/hidden/link), parent in the selection, reward shift.
+PROTOCOL = 2
 
 
 def opt(default, help: str, choices=None, **kw):
@@ -30,15 +32,32 @@ class PoolConfig:
     max_episode_steps: int = opt(0, "episode length (0: the environment's own limit)")
     pool_size: int = opt(1, "number of members N")
     train_episodes: int = opt(20, "training episodes per member per iteration")
-    batch_episodes: int = opt(10, "episodes per gradient step (stepped in lockstep)")
+    batch_episodes: int = opt(0, "episodes per gradient step, stepped in lockstep (0: min(10, --train-episodes))")
     eval_episodes: int = opt(3, "evaluation episodes per member per iteration (no updates)")
     eval_mode: str = opt("mean", "evaluation actions: Beta mean or samples", ("mean", "sample"))
     gamma: float = opt(1.0, "discount factor (Swimmer needs ~1: 0.99 traps it near 40)")
     baseline: str = opt("time", "baseline: leave-one-out time-indexed mean return, or none", ("time", "none"))
     optimizer: str = opt("adam", "step-size rule: Adam, or fixed-length normalised gradient", ("adam", "normalized"))
-    policy: str = opt("linear-exp", "Beta shapes linear in normalised observations through softplus+1, "
-                                "or exp+1 (linear-exp)", ("linear", "linear-exp"))
+    policy: str = opt("linear", "policy network: linear in the normalised observation, or an MLP",
+                      ("linear", "mlp"))
+    hidden: str = opt("64,64", "MLP hidden layer sizes, comma-separated (tanh units; --policy mlp only)")
+    link: str = opt("exp", "Beta shapes from pre-activations z: exp(z)+1 or softplus(z)+1", ("exp", "softplus"))
+    reward_shift: float = opt(0.0, "subtracted from every training reward (e.g. 1 = the survival bonus of "
+                                   "Hopper/Walker2d/Ant); evaluation scores the env's own reward")
+    selection: str = opt("parent", "who competes for an iteration: the branches and the parent re-scored on "
+                                   "the same episodes (the pool never loses ground), or branches only",
+                         ("parent", "branches"))
+    revert_after: int = opt(0, "go back to the best selected agent after K iterations without a new best "
+                               "(0: never)")
     seed: int = opt(0, "root seed; every random draw derives from (seed, member, iteration)")
+
+    @property
+    def spec(self):
+        """The policy this pool trains (:class:`rl_pool.policy.PolicySpec`)."""
+        from .policy import PolicySpec
+
+        hidden = tuple(int(h) for h in self.hidden.split(",")) if self.policy == "mlp" else ()
+        return PolicySpec(self.policy, hidden, self.link)
 
     @property
     def updates_per_iteration(self) -> int:
@@ -49,6 +68,9 @@ class PoolConfig:
         return self.pool_size // 2 + 1
 
     def validate(self) -> PoolConfig:
+        """Check every field; returns the config with derived defaults resolved (``batch_episodes`` 0)."""
+        if self.batch_episodes == 0 and self.train_episodes >= 1:
+            return dataclasses.replace(self, batch_episodes=min(10, self.train_episodes)).validate()
         for name in ("pool_size", "train_episodes", "batch_episodes", "eval_episodes"):
             if getattr(self, name) < 1:
                 raise UsageError(f"--{name.replace('_', '-')} must be a positive integer, got {getattr(self, name)}")
@@ -67,6 +89,14 @@ class PoolConfig:
                 raise UsageError(f"--{f.name.replace('_', '-')} must be one of {', '.join(choices)}")
         if not isinstance(self.env_kwargs, dict):
             raise UsageError("--env-kwargs must be a JSON object")
+        if not math.isfinite(self.reward_shift):
+            raise UsageError(f"--reward-shift must be a finite number, got {self.reward_shift}")
+        if self.revert_after < 0:
+            raise UsageError(f"--revert-after must be >= 0, got {self.revert_after}")
+        try:
+            self.spec  # noqa: B018 (parses --hidden and checks the policy)
+        except ValueError as exc:
+            raise UsageError(f"--policy/--hidden/--link: {exc}") from None
         return self
 
     def to_json(self) -> dict:
@@ -74,8 +104,10 @@ class PoolConfig:
 
     @classmethod
     def from_json(cls, d: dict) -> PoolConfig:
-        if not isinstance(d, dict) or d.get("protocol") != PROTOCOL:
-            raise ValueError(f"protocol {d.get('protocol') if isinstance(d, dict) else None!r}, expected {PROTOCOL}")
+        if not isinstance(d, dict):
+            raise ValueError("not a JSON object")
+        if d.get("protocol") != PROTOCOL:
+            raise OldProtocol(d.get("protocol"))
         names = {f.name for f in fields(cls)}
         missing = names - d.keys()
         if missing:
@@ -104,6 +136,14 @@ class PoolConfig:
                     f"{where} was made with {flag} {_show(have)}, this run asks for {_show(value)} "
                     "(drop the option to use the pool's, or use another --pool-dir)")
         return saved
+
+
+class OldProtocol(ValueError):
+    """A pool made by another version of rl-pool (its ``protocol`` differs)."""
+
+    def __init__(self, protocol):
+        self.protocol = protocol
+        super().__init__(f"protocol {protocol!r}, this rl-pool speaks {PROTOCOL}")
 
 
 def _norm(v):

@@ -58,51 +58,56 @@ def enable_compilation_cache() -> None:
 
 
 class OptState(NamedTuple):
-    """Adam moments (unused by ``normalized``), same shape as the weights, and the step count."""
+    """Adam moments (unused by ``normalized``), named and shaped like the parameters, and the step count."""
 
-    m: np.ndarray
-    v: np.ndarray
+    m: dict
+    v: dict
     t: float
 
 
-def init_opt_state(w: np.ndarray) -> OptState:
-    return OptState(np.zeros_like(w), np.zeros_like(w), 0.0)
+def init_opt_state(params: dict) -> OptState:
+    return OptState({k: np.zeros_like(v) for k, v in params.items()},
+                    {k: np.zeros_like(v) for k, v in params.items()}, 0.0)
 
 
-def objective(w, x, u, adv, mask, kind="linear"):
-    """Surrogate ``J(w)`` above; ``x`` ``[B,T,obs]``, ``u`` ``[B,T,act]``, ``adv``/``mask`` ``[B,T]``."""
-    logp = policy.log_prob_unit(w, x, u, xp=jnp, gammaln=gammaln, policy=kind)
+def objective(params, x, u, adv, mask, spec: policy.PolicySpec):
+    """Surrogate ``J`` above; ``x`` ``[B,T,obs]``, ``u`` ``[B,T,act]``, ``adv``/``mask`` ``[B,T]``."""
+    logp = policy.log_prob_unit(params, x, u, spec, xp=jnp, gammaln=gammaln)
     n = jnp.maximum(mask.sum(), 1.0)
     return (logp * adv * mask).sum() / n
 
 
-policy_gradient = jax.jit(jax.grad(objective), static_argnames=("kind",))
+policy_gradient = jax.jit(jax.grad(objective), static_argnames=("spec",))
 
 
-@partial(jax.jit, static_argnames=("optimizer", "kind"))
-def _update(w, m, v, t, x, u, adv, mask, lr, optimizer, kind):
-    g = jax.grad(objective)(w, x, u, adv, mask, kind)
-    gnorm = jnp.sqrt((g * g).sum())
+@partial(jax.jit, static_argnames=("optimizer", "spec"))
+def _update(params, m, v, t, x, u, adv, mask, lr, optimizer, spec):
+    g = jax.grad(objective)(params, x, u, adv, mask, spec)
+    leaves = jax.tree_util.tree_leaves(g)
+    gnorm = jnp.sqrt(sum((leaf * leaf).sum() for leaf in leaves))
+    tmap = jax.tree_util.tree_map
     if optimizer == "adam":
         t = t + 1.0
-        m = ADAM_B1 * m + (1.0 - ADAM_B1) * g
-        v = ADAM_B2 * v + (1.0 - ADAM_B2) * g * g
-        m_hat = m / (1.0 - ADAM_B1**t)
-        v_hat = v / (1.0 - ADAM_B2**t)
-        w = w + lr * m_hat / (jnp.sqrt(v_hat) + ADAM_EPS)
+        m = tmap(lambda m_, g_: ADAM_B1 * m_ + (1.0 - ADAM_B1) * g_, m, g)
+        v = tmap(lambda v_, g_: ADAM_B2 * v_ + (1.0 - ADAM_B2) * g_ * g_, v, g)
+        c1, c2 = 1.0 - ADAM_B1**t, 1.0 - ADAM_B2**t
+        params = tmap(lambda p_, m_, v_: p_ + lr * (m_ / c1) / (jnp.sqrt(v_ / c2) + ADAM_EPS),
+                      params, m, v)
     else:
-        w = w + lr * g / (gnorm + 1e-12)
+        params = tmap(lambda p_, g_: p_ + lr * g_ / (gnorm + 1e-12), params, g)
         t = t + 1.0
-    return w, m, v, t, gnorm
+    return params, m, v, t, gnorm
 
 
-def update(w, opt: OptState, x, u, adv, mask, lr: float, optimizer: str, kind: str = "linear"):
-    """One gradient-ascent step on a batch; returns ``(w, opt_state, grad_norm)`` as NumPy."""
+def update(params: dict, opt: OptState, x, u, adv, mask, lr: float, optimizer: str,
+           spec: policy.PolicySpec):
+    """One gradient-ascent step on a batch; returns ``(params, opt_state, grad_norm)`` as NumPy."""
     if optimizer not in OPTIMIZERS:
         raise ValueError(f"unknown optimizer {optimizer!r}")
     b, t_len = mask.shape
     if x.shape[:2] != (b, t_len) or u.shape[:2] != (b, t_len) or adv.shape != (b, t_len):
         raise ValueError(f"batch shapes disagree: x {x.shape}, u {u.shape}, adv {adv.shape}, mask {mask.shape}")
-    out = _update(w, opt.m, opt.v, opt.t, x, u, adv, mask, float(lr), optimizer, kind)
-    w, m, v, t, gnorm = jax.device_get(out)
-    return np.asarray(w), OptState(np.asarray(m), np.asarray(v), float(t)), float(gnorm)
+    out = _update(params, opt.m, opt.v, opt.t, x, u, adv, mask, float(lr), optimizer, spec)
+    params, m, v, t, gnorm = jax.device_get(out)
+    as_np = lambda d: {k: np.asarray(a) for k, a in d.items()}  # noqa: E731
+    return as_np(params), OptState(as_np(m), as_np(v), float(t)), float(gnorm)

@@ -49,8 +49,8 @@ def make_initial(cfg: PoolConfig):
     env.close()
     cfg = dataclasses.replace(cfg, max_episode_steps=info.max_episode_steps)
     meta = AgentMeta(cfg.env, dict(cfg.env_kwargs), info.max_episode_steps, info.obs_dim, info.act_dim,
-                     tuple(float(x) for x in info.low), tuple(float(x) for x in info.high), cfg.policy)
-    return Agent.initial(meta), cfg
+                     tuple(float(x) for x in info.low), tuple(float(x) for x in info.high), cfg.spec)
+    return Agent.initial(meta, seed=cfg.seed), cfg
 
 
 def check_arguments(paths: pool.Paths, requested: dict, members: list[MemberConfig]) -> PoolConfig:
@@ -178,7 +178,14 @@ def _loop(paths: pool.Paths, cfg: PoolConfig, mc: MemberConfig, hb: pool.Heartbe
             tr = trainer.train(start, env_list, cfg, lr, me, i)
             hb.set(state="evaluating")
             ev = trainer.evaluate(tr.agent, env_list, cfg, i)
-            metrics = ev.summary() | {
+            parent = {}
+            if cfg.selection == "parent":
+                # The parent competes on the same episodes; every member scores it, so the
+                # selection does not depend on any one member's deposit being there.
+                pe = trainer.evaluate(start, env_list, cfg, i)
+                parent = {"parent_eval_return": pe.mean, "parent_sha256": prev["agent_sha256"],
+                          "parent_eval_seconds": pe.seconds, "parent_eval_steps": pe.steps}
+            metrics = ev.summary() | parent | {
                 "learning_rate": lr,
                 "train_steps": tr.steps, "train_seconds": tr.seconds,
                 "train_return_mean": sum(tr.episode_returns) / len(tr.episode_returns),
@@ -200,8 +207,8 @@ def _loop(paths: pool.Paths, cfg: PoolConfig, mc: MemberConfig, hb: pool.Heartbe
         pool.update_best(paths, sel)  # every member: a kill of the selection's writer must not lose it
         if res.created and i - mc.keep_iterations >= 1:
             pool.collect_garbage(paths, i - mc.keep_iterations)
-        log.info("iteration %d: selected member %s (eval return %s); mine %s; waited %.3fs",
-                 i, sel.get("member"), _fmt(sel.get("eval_return")), _fmt(mine), res.waited)
+        log.info("iteration %d: selected %s (eval return %s); mine %s; waited %.3fs",
+                 i, describe_winner(sel), _fmt(sel.get("eval_return")), _fmt(mine), res.waited)
         lr = _next_learning_rate(paths, cfg, mc, sel, lr)
         hb.set(selected=sel.get("member"), selected_return=sel.get("eval_return"), learning_rate=lr)
         prev = sel
@@ -233,6 +240,18 @@ def _learning_rate_for(paths: pool.Paths, cfg: PoolConfig, mc: MemberConfig, fir
         return mc.learning_rate
     own = _deposit_lr(paths, first - 1, mc.member) or mc.learning_rate
     return _next_learning_rate(paths, cfg, mc, pool.read_selected(paths, first - 1), own)
+
+
+def describe_winner(sel: dict) -> str:
+    """``member 2``, ``the parent``, ``a revert to iteration 7``, ... for logs and progress lines."""
+    win = sel.get("winner", "branch")
+    if win == "branch":
+        return f"member {sel.get('member')}"
+    if win == "revert":
+        return f"a revert to iteration {sel.get('reverted_to')}"
+    if win == "carried":
+        return "the parent (no valid deposit)"
+    return "the parent"
 
 
 def _fmt(x) -> str:

@@ -1,64 +1,148 @@
-"""Beta policy: one Beta distribution per action dimension (pure functions).
+"""Beta policies: a small family of networks feeding one Beta distribution per action dimension.
 
-Features ``phi = [x, 1]`` for a normalised observation ``x``; parameters are a
-matrix ``w`` of shape ``[obs_dim + 1, 2 * act_dim]`` and
+A policy is described by a :class:`PolicySpec` (kind, hidden sizes, link) and
+its parameters are a dict of named arrays (a JAX pytree), so rollouts, the
+learner and agent files treat every kind alike. Each kind maps normalised
+observations ``x`` ``[..., obs_dim]`` to pre-activations ``z`` ``[..., 2A]``:
 
-    alpha_j = softplus(phi . w[:, j]) + 1,   beta_j = softplus(phi . w[:, A + j]) + 1.
+* ``linear``: ``z = [x, 1] W`` with ``W`` (named ``w``) ``[obs_dim + 1, 2A]``
+  (the last row is the bias, as in agent files of format 1);
+* ``mlp``: ``h_0 = x``, ``h_{k+1} = tanh(h_k W_k + b_k)`` for each hidden
+  layer, then ``z = h_L W_L + b_L``; arrays ``w0, b0, ..., wL, bL``.
 
-Shapes >= 1 keep every Beta unimodal (no mass piling up at the bounds).
+The link turns ``z`` into shapes ``alpha_j = link(z_j) + 1`` and ``beta_j =
+link(z_{A+j}) + 1``, both >= 1 so every Beta is unimodal (no mass piling up
+at the bounds). ``exp`` (clamped at ``Z_MAX``) is the default: a linear step
+in ``z`` scales the shape, so a policy can become sharp, or push its mean
+close to an action bound, in a few steps instead of hundreds (on Swimmer the
+``softplus`` link stalls with mean actions capped near 0.9 of the bound; see
+results/). A sample ``u`` in (0, 1) maps to the action ``low + u (high - low)``;
+the Beta policy for bounded control is Chou, Maturana & Scherer (2017).
 
-Policy ``linear-exp`` replaces ``softplus`` by ``exp`` (clamped at ``Z_MAX``):
-shapes >= 1 still, but a linear step in ``z`` scales the shape multiplicatively,
-so a policy can become sharp, or push its mean close to an action bound, in a
-few steps instead of hundreds (on Swimmer the softplus link stalls with mean
-actions capped near 0.9 of the bound; see results/). A
-sample ``u`` in (0, 1) maps to the action ``low + u * (high - low)``; the
-policy was introduced for bounded control by Chou, Maturana & Scherer (2017).
-
-Functions take an array module ``xp`` (numpy or jax.numpy) so that the same
-maths serves the NumPy rollouts and the JAX gradient.
+The forward pass is written once and takes an array module ``xp`` (numpy or
+jax.numpy): the same maths serves the NumPy rollouts and the JAX gradient.
 """
 
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 
 import numpy as np
 
 #: Samples are clipped to [EPS, 1 - EPS] before any log: a float Beta draw can be exactly 0 or 1.
 EPS = 1e-6
+#: The ``exp`` link clamps the pre-activation here: shapes stay below 1 + e^10 ~ 22000.
+Z_MAX = 10.0
+
+KINDS = ("linear", "mlp")
+LINKS = ("exp", "softplus")
+#: Seed-stream tag for initial weights, apart from every training and evaluation stream.
+_INIT_TAG = 7
 
 _lgamma = np.vectorize(math.lgamma, otypes=[np.float64])
 
-POLICIES = ("linear", "linear-exp")
-#: ``linear-exp`` clamps the pre-activation here: shapes stay below 1 + e^10 ~ 22000.
-Z_MAX = 10.0
+
+@dataclass(frozen=True)
+class PolicySpec:
+    """What a policy is, apart from its numbers (hashable: a static argument to jitted code)."""
+
+    kind: str = "linear"
+    hidden: tuple[int, ...] = ()
+    link: str = "exp"
+
+    def __post_init__(self):
+        if self.kind not in KINDS:
+            raise ValueError(f"unknown policy kind {self.kind!r} (have {', '.join(KINDS)})")
+        if self.link not in LINKS:
+            raise ValueError(f"unknown link {self.link!r} (have {', '.join(LINKS)})")
+        hidden = tuple(int(h) for h in self.hidden)
+        if self.kind == "linear" and hidden:
+            raise ValueError("a linear policy has no hidden layers")
+        if self.kind == "mlp" and (not hidden or any(h < 1 or h > 4096 for h in hidden) or len(hidden) > 8):
+            raise ValueError(f"mlp hidden sizes must be 1 to 8 layers of 1..4096 units, got {hidden}")
+        object.__setattr__(self, "hidden", hidden)
+
+    def to_json(self) -> dict:
+        return {"kind": self.kind, "hidden": list(self.hidden), "link": self.link}
+
+    @classmethod
+    def from_json(cls, d) -> PolicySpec:
+        """From an agent file: format 2's object, or format 1's names ``linear`` / ``linear-exp``."""
+        if d == "linear":
+            return cls("linear", (), "softplus")
+        if d == "linear-exp":
+            return cls("linear", (), "exp")
+        if not isinstance(d, dict):
+            raise ValueError(f"policy must be an object, got {d!r}")
+        return cls(str(d["kind"]), tuple(d.get("hidden", ())), str(d.get("link", "exp")))
+
+    def describe(self) -> str:
+        body = "linear" if self.kind == "linear" else "mlp " + ",".join(map(str, self.hidden))
+        return f"{body} ({self.link} link)"
 
 
-def n_features(obs_dim: int) -> int:
-    return obs_dim + 1
+def param_shapes(spec: PolicySpec, obs_dim: int, act_dim: int) -> dict[str, tuple[int, ...]]:
+    """Every parameter's name and shape, in a fixed order."""
+    out = 2 * act_dim
+    if spec.kind == "linear":
+        return {"w": (obs_dim + 1, out)}
+    sizes = [obs_dim, *spec.hidden, out]
+    shapes = {}
+    for k in range(len(sizes) - 1):
+        shapes[f"w{k}"] = (sizes[k], sizes[k + 1])
+        shapes[f"b{k}"] = (sizes[k + 1],)
+    return shapes
 
 
-def init_params(obs_dim: int, act_dim: int) -> np.ndarray:
-    """Zero weights: alpha = beta = softplus(0) + 1 ~ 1.69, a broad bump centred on the middle."""
-    return np.zeros((n_features(obs_dim), 2 * act_dim))
+def init_params(spec: PolicySpec, obs_dim: int, act_dim: int, seed: int = 0) -> dict[str, np.ndarray]:
+    """Initial parameters, a deterministic function of ``seed``.
+
+    The output layer starts at zero, so every kind starts from the same policy:
+    ``alpha = beta = link(0) + 1`` (2 for ``exp``), a broad bump centred on the
+    middle of each action range. Hidden layers draw ``N(0, 1/fan_in)`` weights
+    (LeCun's scaling, which keeps ``tanh`` units out of saturation) and zero biases.
+    """
+    shapes = param_shapes(spec, obs_dim, act_dim)
+    rng = np.random.Generator(np.random.PCG64(np.random.SeedSequence([int(seed), _INIT_TAG])))
+    params = {}
+    n_layers = len(spec.hidden) + 1
+    for name, shape in shapes.items():
+        last = name in ("w", f"w{n_layers - 1}", f"b{n_layers - 1}")
+        if last or name.startswith("b"):
+            params[name] = np.zeros(shape)
+        else:
+            params[name] = rng.normal(0.0, 1.0 / math.sqrt(shape[0]), size=shape)
+    return params
+
+
+def preactivations(params: dict, x, spec: PolicySpec, xp=np):
+    """``z`` ``[..., 2A]`` for normalised observations ``x`` ``[..., obs_dim]``."""
+    if spec.kind == "linear":
+        w = params["w"]
+        return x @ w[:-1] + w[-1]
+    h = x
+    n_layers = len(spec.hidden) + 1
+    for k in range(n_layers - 1):
+        h = xp.tanh(h @ params[f"w{k}"] + params[f"b{k}"])
+    return h @ params[f"w{n_layers - 1}"] + params[f"b{n_layers - 1}"]
 
 
 def softplus(z, xp=np):
     return xp.logaddexp(0.0, z)
 
 
-def shapes(z, policy: str = "linear", xp=np):
+def shapes(z, link: str = "exp", xp=np):
     """The link from pre-activations to Beta shapes, both >= 1."""
-    if policy == "linear-exp":
+    if link == "exp":
         return xp.exp(xp.minimum(z, Z_MAX)) + 1.0
     return softplus(z, xp) + 1.0
 
 
-def beta_params(w, x, xp=np, policy: str = "linear"):
+def beta_params(params: dict, x, spec: PolicySpec, xp=np):
     """``(alpha, beta)`` for normalised observations ``x`` ``[..., obs_dim]``; each ``[..., act_dim]``."""
-    act_dim = w.shape[1] // 2
-    ab = shapes(x @ w[:-1] + w[-1], policy, xp)
+    ab = shapes(preactivations(params, x, spec, xp), spec.link, xp)
+    act_dim = ab.shape[-1] // 2
     return ab[..., :act_dim], ab[..., act_dim:]
 
 
@@ -75,9 +159,9 @@ def beta_log_prob(u, alpha, beta, xp=np, gammaln=None):
     return (alpha - 1.0) * xp.log(u) + (beta - 1.0) * xp.log1p(-u) - log_norm
 
 
-def log_prob_unit(w, x, u, xp=np, gammaln=None, policy: str = "linear"):
+def log_prob_unit(params: dict, x, u, spec: PolicySpec, xp=np, gammaln=None):
     """``sum_j log Beta(u_j; alpha_j, beta_j)`` for samples ``u`` in (0, 1); shape ``[...]``."""
-    alpha, beta = beta_params(w, x, xp, policy)
+    alpha, beta = beta_params(params, x, spec, xp)
     return beta_log_prob(u, alpha, beta, xp, gammaln).sum(axis=-1)
 
 

@@ -33,7 +33,7 @@ from dataclasses import dataclass
 
 from . import fsutil
 from .agent import Agent
-from .config import PoolConfig
+from .config import PROTOCOL, OldProtocol, PoolConfig
 from .errors import AgentFileError, UsageError
 
 log = logging.getLogger("rl_pool")
@@ -108,6 +108,11 @@ def read_config(paths: Paths) -> PoolConfig:
         raise UsageError(f"{paths.root} is not an rl-pool pool (no pool.json)")
     try:
         return PoolConfig.from_json(fsutil.read_json(paths.pool_json)).validate()
+    except OldProtocol as exc:
+        raise UsageError(
+            f"{paths.root} was made by another rl-pool version (pool protocol {exc.protocol!r}, this one "
+            f"speaks {PROTOCOL}); start a new --pool-dir or finish this one with the rl-pool that made it "
+            "(its agents still work with evaluate and replay)") from None
     except UsageError as exc:
         raise UsageError(f"{paths.pool_json} holds invalid settings ({exc})") from None
     except (OSError, ValueError, TypeError) as exc:
@@ -271,14 +276,39 @@ def choose(candidates: list[tuple[int, float]]) -> tuple[int, float]:
     return min(candidates, key=lambda c: (-c[1], c[0]))
 
 
-def select(paths: Paths, i: int, pool_size: int, like: Agent, members: set[int], reason: str,
-           previous: dict) -> dict:
-    """The selection of iteration ``i`` among the deposits of ``members`` (a pure function of files).
+def parent_score(docs: list[dict], parent_sha: str) -> float | None:
+    """The parent's score on this iteration's evaluation episodes, as the valid deposits report it.
 
-    If no deposit is valid the previous selection's agent carries over.
+    Every member re-scores the agent it started from on the iteration's common
+    evaluation seeds, so all honest reports agree; the lowest member's report
+    that names the right parent counts.
     """
-    considered, skipped = [], []
-    for m in range(pool_size):
+    for doc in docs:
+        ret = doc.get("parent_eval_return")
+        if doc.get("parent_sha256") == parent_sha and _finite(ret):
+            return float(ret)
+    return None
+
+
+def _finite(x) -> bool:
+    return isinstance(x, (int, float)) and not isinstance(x, bool) and math.isfinite(x)
+
+
+def select(paths: Paths, i: int, cfg: PoolConfig, like: Agent, members: set[int], reason: str,
+           previous: dict) -> dict:
+    """The selection of iteration ``i`` (a pure function of its files and ``previous``, the
+    selection of ``i - 1``).
+
+    ``winner`` says why the agent won: ``branch`` (the best valid deposit;
+    ties go to the lowest member), ``parent`` (with ``cfg.selection ==
+    "parent"``: the agent the iteration started from, re-scored on the same
+    evaluation episodes, beat every branch, so the pool keeps it), ``revert``
+    (``cfg.revert_after`` iterations passed without a new best: back to the
+    best selected agent) or ``carried`` (no valid deposit: the parent carries over).
+    A branch that ties with the parent wins: it has not lost ground.
+    """
+    considered, skipped, docs = [], [], []
+    for m in range(cfg.pool_size):
         if m not in members:
             skipped.append({"member": m, "reason": "missing"})
             continue
@@ -287,20 +317,50 @@ def select(paths: Paths, i: int, pool_size: int, like: Agent, members: set[int],
         except ValueError as exc:
             skipped.append({"member": m, "reason": str(exc)})
             continue
+        docs.append(doc)
         considered.append({"member": m, "eval_return": float(doc["eval_return"]),
                            "agent_sha256": doc["agent_sha256"]})
     out = {"iteration": i, "considered": [{"member": c["member"], "eval_return": c["eval_return"]}
                                           for c in considered],
-           "skipped": skipped, "quorum_reason": reason}
+           "skipped": skipped, "quorum_reason": reason,
+           "parent": {"iteration": previous["iteration"], "member": previous.get("member"),
+                      "agent_sha256": previous["agent_sha256"]}}
+    parent_ret = parent_score(docs, previous["agent_sha256"]) if cfg.selection == "parent" else None
+    out["parent"]["eval_return"] = parent_ret
+    keep_parent = {"member": None, "agent": previous["agent"], "agent_sha256": previous["agent_sha256"]}
     if considered:
         m, ret = choose([(c["member"], c["eval_return"]) for c in considered])
-        sha = next(c["agent_sha256"] for c in considered if c["member"] == m)
-        out |= {"member": m, "eval_return": ret, "agent": paths.rel(paths.deposit_npz(i, m)),
-                "agent_sha256": sha}
+        if parent_ret is not None and parent_ret > ret:
+            out |= keep_parent | {"winner": "parent", "eval_return": parent_ret,
+                                  "best_branch": {"member": m, "eval_return": ret}}
+        else:
+            sha = next(c["agent_sha256"] for c in considered if c["member"] == m)
+            out |= {"winner": "branch", "member": m, "eval_return": ret,
+                    "agent": paths.rel(paths.deposit_npz(i, m)), "agent_sha256": sha}
     else:
-        out |= {"member": None, "eval_return": None, "agent": previous["agent"],
-                "agent_sha256": previous["agent_sha256"],
-                "carried_from": previous["iteration"]}
+        out |= keep_parent | {"winner": "carried", "eval_return": parent_ret,
+                              "carried_from": previous["iteration"]}
+    return _track_best(out, previous, cfg.revert_after)
+
+
+def _track_best(out: dict, previous: dict, revert_after: int) -> dict:
+    """Carry the best selection so far (``best``) and the iterations since it (``since_best``)
+    from ``previous`` to ``out``; revert to the best after ``revert_after`` of them."""
+    best = previous.get("best")
+    ret = out.get("eval_return")
+    if ret is not None and (not isinstance(best, dict) or ret > best["eval_return"]):
+        out["best"] = {"iteration": out["iteration"], "eval_return": ret, "agent": out["agent"],
+                       "agent_sha256": out["agent_sha256"]}
+        out["since_best"] = 0
+        return out
+    out["best"] = best if isinstance(best, dict) else None
+    out["since_best"] = int(previous.get("since_best") or 0) + 1
+    if revert_after and out["best"] is not None and out["since_best"] >= revert_after \
+            and out["agent_sha256"] != best["agent_sha256"]:
+        out["instead"] = {k: out.get(k) for k in ("winner", "member", "eval_return")}
+        out |= {"winner": "revert", "member": None, "eval_return": best["eval_return"],
+                "agent": best["agent"], "agent_sha256": best["agent_sha256"],
+                "reverted_to": best["iteration"], "since_best": 0}
     return out
 
 
@@ -546,7 +606,7 @@ def barrier(paths: Paths, i: int, cfg: PoolConfig, me: int, like: Agent, quorum:
     previous = read_selected(paths, i - 1)
     if previous is None:
         raise RuntimeError(f"iteration {i - 1} has no readable selection")
-    selection = select(paths, i, cfg.pool_size, like, have, reason, previous)
+    selection = select(paths, i, cfg, like, have, reason, previous)
     for s in selection["skipped"]:
         if s["reason"] != "missing":
             log.warning("iteration %d: skipped member %d: %s", i, s["member"], s["reason"])

@@ -31,12 +31,11 @@ class Batch(NamedTuple):
         return int(self.lengths.sum())
 
 
-def run_episodes(envs, w, norm, low, high, seeds, max_steps: int,
-                 rng: np.random.Generator | None, deterministic: bool, record: bool = True,
-                 policy_kind: str = "linear"):
+def run_episodes(envs, params: dict, spec: policy.PolicySpec, norm, low, high, seeds, max_steps: int,
+                 rng: np.random.Generator | None, deterministic: bool, record: bool = True):
     """Run one episode in each of ``envs[:len(seeds)]`` in lockstep.
 
-    ``w``: policy weights ``[obs_dim + 1, 2 * act_dim]``; ``norm``: frozen
+    ``params``/``spec``: the policy (any kind of the family); ``norm``: frozen
     normaliser; ``seeds``: one reset seed per episode. Actions are Beta means if
     ``deterministic``, else draws from ``rng``. Returns a :class:`Batch`
     (arrays only when ``record``; otherwise ``obs``/``u``/``rewards``/``mask`` are None).
@@ -44,10 +43,9 @@ def run_episodes(envs, w, norm, low, high, seeds, max_steps: int,
     n = len(seeds)
     if n > len(envs):
         raise ValueError(f"{n} episodes need {n} envs, have {len(envs)}")
-    obs_dim = w.shape[0] - 1
-    act_dim = w.shape[1] // 2
+    obs_dim = norm.mean.shape[0]
+    act_dim = low.shape[0]
     mean, inv_std = normalizer.scale(norm)
-    w_x, w_b = w[:-1], w[-1]
     span = high - low
     clip = normalizer.CLIP
 
@@ -69,7 +67,7 @@ def run_episodes(envs, w, norm, low, high, seeds, max_steps: int,
     for t in range(max_steps):
         o_act = cur if all_active else cur[active]
         x = np.clip((o_act - mean) * inv_std, -clip, clip)
-        ab = policy.shapes(x @ w_x + w_b, policy_kind)
+        ab = policy.shapes(policy.preactivations(params, x, spec), spec.link)
         a, b = ab[:, :act_dim], ab[:, act_dim:]
         u = a / (a + b) if deterministic else policy.clip_unit(rng.beta(a, b))
         actions = low + u * span

@@ -41,6 +41,7 @@ def history(paths: pool.Paths, pool_size: int) -> list[dict]:
                 "learning_rate": _num(doc.get("learning_rate")),
                 "train_steps": doc.get("train_steps"),
                 "eval_steps": doc.get("eval_steps"),
+                "parent_eval_steps": doc.get("parent_eval_steps"),
                 "train_seconds": _num(doc.get("train_seconds")),
                 "eval_seconds": _num(doc.get("eval_seconds")),
                 "wait_seconds": _num(wait.get("wait_seconds")),
@@ -49,6 +50,7 @@ def history(paths: pool.Paths, pool_size: int) -> list[dict]:
         rows.append({
             "iteration": i,
             "selected_member": sel.get("member"),
+            "winner": sel.get("winner", "branch"),
             "eval_return": _num(sel.get("eval_return")),
             "quorum_reason": sel.get("quorum_reason"),
             "skipped": sel.get("skipped", []),
@@ -113,7 +115,8 @@ def write_csv(st: dict, out: str) -> str:
     import csv
 
     n = st["pool_size"]
-    cols = ["iteration", "selected_member", "eval_return", "best_so_far", "elapsed_seconds", "env_steps"]
+    cols = ["iteration", "selected_member", "winner", "eval_return", "best_so_far", "elapsed_seconds",
+            "env_steps"]
     for m in range(n):
         cols += [f"member{m}_eval_return", f"member{m}_learning_rate"]
     steps, best = 0, None
@@ -122,10 +125,11 @@ def write_csv(st: dict, out: str) -> str:
         w.writerow(cols)
         for r in st["history"]:
             by = {x["member"]: x for x in r["members"]}
-            steps += sum((x.get("train_steps") or 0) + (x.get("eval_steps") or 0) for x in r["members"])
+            steps += sum((x.get("train_steps") or 0) + (x.get("eval_steps") or 0) + (x.get("parent_eval_steps") or 0)
+                         for x in r["members"])
             if r["eval_return"] is not None:
                 best = r["eval_return"] if best is None else max(best, r["eval_return"])
-            row = [r["iteration"], r["selected_member"], r["eval_return"], best,
+            row = [r["iteration"], r["selected_member"], r["winner"], r["eval_return"], best,
                    None if r["elapsed_seconds"] is None else round(r["elapsed_seconds"], 3), steps]
             for m in range(n):
                 x = by.get(m, {})
@@ -156,7 +160,8 @@ def format_table(st: dict, last: int = 10) -> str:
         lines.append(f"{'iter':>5}  {'selected':>8}  {'return':>9}  members (return)")
         for r in rows:
             ms = "  ".join(f"m{x['member']}:{_f(x['eval_return'])}" for x in r["members"])
-            lines.append(f"{r['iteration']:>5}  {_s(r['selected_member']):>8}  {_f(r['eval_return']):>9}  {ms}")
+            who = _s(r["selected_member"]) if r["winner"] == "branch" else r["winner"]
+            lines.append(f"{r['iteration']:>5}  {who:>8}  {_f(r['eval_return']):>9}  {ms}")
     return "\n".join(lines)
 
 

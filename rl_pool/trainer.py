@@ -90,23 +90,25 @@ def train(agent: Agent, envs, cfg: PoolConfig, lr: float, member: int, iteration
     t0 = time.perf_counter()
     seeds, rng = train_streams(cfg.seed, member, iteration, cfg.train_episodes)
     low, high = agent.low, agent.high
-    w, norm = agent.w, agent.norm
+    params, norm, spec = agent.params, agent.norm, agent.spec
     opt = learner.OptState(agent.opt_m, agent.opt_v, agent.opt_t)
     T = agent.meta.max_episode_steps
     steps, ep_returns, gnorms = 0, [], []
     B = cfg.batch_episodes
     for k in range(cfg.updates_per_iteration):
-        batch = run_episodes(envs, w, norm, low, high, seeds[k * B:(k + 1) * B], T, rng,
-                             deterministic=False, policy_kind=agent.meta.policy)
+        batch = run_episodes(envs, params, spec, norm, low, high, seeds[k * B:(k + 1) * B], T, rng,
+                             deterministic=False)
         x = normalizer.normalize(norm, batch.obs)
-        adv = returns.advantages(batch.rewards, batch.mask, cfg.gamma, cfg.baseline)
-        w, opt, gnorm = learner.update(w, opt, x, batch.u, adv, batch.mask, lr, cfg.optimizer,
-                                       agent.meta.policy)
+        # The shift (e.g. a survival bonus) only shapes training; returns reported stay the env's.
+        rewards = batch.rewards - cfg.reward_shift * batch.mask if cfg.reward_shift else batch.rewards
+        adv = returns.advantages(rewards, batch.mask, cfg.gamma, cfg.baseline)
+        params, opt, gnorm = learner.update(params, opt, x, batch.u, adv, batch.mask, lr,
+                                            cfg.optimizer, spec)
         norm = normalizer.update(norm, batch.obs[batch.mask > 0])
         steps += batch.steps
         ep_returns.extend(float(r) for r in batch.returns)
         gnorms.append(gnorm)
-    new = agent.evolve(w=w, norm=norm, opt_m=opt.m, opt_v=opt.v, opt_t=opt.t)
+    new = agent.evolve(params=params, norm=norm, opt_m=opt.m, opt_v=opt.v, opt_t=opt.t)
     return TrainResult(new, steps, time.perf_counter() - t0, ep_returns, gnorms)
 
 
@@ -114,8 +116,7 @@ def evaluate(agent: Agent, envs, cfg: PoolConfig, iteration: int) -> EvalResult:
     """``cfg.eval_episodes`` episodes without updates on the iteration's shared seeds."""
     t0 = time.perf_counter()
     seeds, rng = eval_streams(cfg.seed, iteration, cfg.eval_episodes)
-    batch = run_episodes(envs, agent.w, agent.norm, agent.low, agent.high, seeds,
+    batch = run_episodes(envs, agent.params, agent.spec, agent.norm, agent.low, agent.high, seeds,
                          agent.meta.max_episode_steps, rng,
-                         deterministic=cfg.eval_mode == "mean", record=False,
-                         policy_kind=agent.meta.policy)
+                         deterministic=cfg.eval_mode == "mean", record=False)
     return EvalResult([float(r) for r in batch.returns], batch.steps, time.perf_counter() - t0)

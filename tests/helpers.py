@@ -12,7 +12,7 @@ META = AgentMeta("Swimmer-v5", {}, 60, 8, 2, (-1.0, -1.0), (1.0, 1.0))
 def agent(seed: int = 0) -> Agent:
     rng = np.random.default_rng(seed)
     a = Agent.initial(META)
-    return a.evolve(w=rng.normal(size=a.w.shape))
+    return a.evolve(params={"w": rng.normal(size=a.params["w"].shape)})
 
 
 def fake_initial(cfg):

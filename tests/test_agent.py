@@ -2,12 +2,14 @@
 
 import io
 import json
+import os
 
 import numpy as np
 import pytest
 import scipy.stats
 
-from rl_pool import Agent, envs
+from rl_pool import Agent, envs, policy
+from rl_pool.agent import AgentMeta, max_file_bytes
 from rl_pool.errors import AgentFileError, EnvError
 
 from .helpers import META, Evil, agent
@@ -15,13 +17,13 @@ from .helpers import META, Evil, agent
 
 def test_round_trip_is_exact(tmp_path):
     a = agent(1)
-    a = a.evolve(opt_m=a.w * 2, opt_v=a.w**2, opt_t=7.0)
+    a = a.evolve(opt_m={"w": a.params["w"] * 2}, opt_v={"w": a.params["w"] ** 2}, opt_t=7.0)
     path = tmp_path / "a.npz"
     a.save(path)
     b = Agent.load(path)
     assert b.meta == a.meta
-    for x, y in [(a.w, b.w), (a.norm.mean, b.norm.mean), (a.norm.m2, b.norm.m2), (a.opt_m, b.opt_m),
-                 (a.opt_v, b.opt_v)]:
+    for x, y in [(a.params["w"], b.params["w"]), (a.norm.mean, b.norm.mean), (a.norm.m2, b.norm.m2),
+                 (a.opt_m["w"], b.opt_m["w"]), (a.opt_v["w"], b.opt_v["w"])]:
         np.testing.assert_array_equal(x, y)
     assert (b.norm.count, b.opt_t) == (a.norm.count, a.opt_t)
     assert a.to_bytes() == b.to_bytes()
@@ -68,14 +70,15 @@ def _arrays(a):
 
 def test_pickled_object_is_refused_and_never_run(tmp_path):
     marker = tmp_path / "ran"
-    arrays = _arrays(agent()) | {"w": np.array([Evil(marker)], dtype=object)}
+    arrays = _arrays(agent()) | {"param.w": np.array([Evil(marker)], dtype=object)}
     with pytest.raises(AgentFileError, match="unreadable"):
         Agent.from_bytes(_npz(**arrays))
     assert not marker.exists()
 
 
 @pytest.mark.parametrize("change, match", [
-    ({"w": np.zeros((3, 3))}, "shape"),
+    ({"param.w": np.zeros((3, 3))}, "shape"),
+    ({"adam_v.w": -np.ones((9, 4))}, "negative"),
     ({"obs_mean": np.full(8, np.nan)}, "non-finite"),
     ({"meta": np.array("{not json")}, "JSON"),
     ({"meta": np.array(json.dumps({"format": "something-else"}))}, "not an rl-pool agent"),
@@ -114,7 +117,7 @@ def test_hostile_sizes_are_refused_before_allocation():
 
     # An entry that really is big (9 M zeros compress to a few kB) is refused from the zip directory.
     huge = io.BytesIO()
-    np.savez_compressed(huge, **(_arrays(agent()) | {"w": np.zeros((3000, 3000))}))
+    np.savez_compressed(huge, **(_arrays(agent()) | {"param.w": np.zeros((3000, 3000))}))
     assert len(huge.getvalue()) < 100_000
     with pytest.raises(AgentFileError, match="larger than its shape"):
         Agent.from_bytes(huge.getvalue())
@@ -125,10 +128,58 @@ def test_hostile_sizes_are_refused_before_allocation():
     header["shape"] = (50_000, 50_000)
     out = io.BytesIO()
     np.lib.format.write_array_header_1_0(out, header)
-    members["w.npy"] = out.getvalue() + b"\0" * 64
+    members["param.w.npy"] = out.getvalue() + b"\0" * 64
     fake = io.BytesIO()
     with zipfile.ZipFile(fake, "w") as zf:
         for n, b in members.items():
             zf.writestr(n, b)
     with pytest.raises(AgentFileError, match="unreadable"):
         Agent.from_bytes(fake.getvalue())
+
+
+OLD_FORMAT = os.path.join(os.path.dirname(__file__), "..", "results", "swimmer-v5", "best.npz")
+
+
+def _reference_action(raw: dict, obs: np.ndarray) -> np.ndarray:
+    """Format 1's linear-exp policy written out by hand from the file's raw arrays."""
+    meta = json.loads(str(raw["meta"]))
+    std = np.sqrt(raw["obs_m2"] / raw["obs_count"] + 1e-8)
+    x = np.clip((obs - raw["obs_mean"]) / std, -10, 10)
+    z = np.append(x, 1.0) @ raw["w"]
+    ab = np.exp(np.minimum(z, 10.0)) + 1
+    a, b = ab[: len(ab) // 2], ab[len(ab) // 2:]
+    low, high = np.array(meta["action_low"]), np.array(meta["action_high"])
+    return low + a / (a + b) * (high - low)
+
+
+def test_format_1_files_load_and_act_identically(tmp_path):
+    with np.load(OLD_FORMAT, allow_pickle=False) as z:
+        raw = {k: z[k] for k in z.files}
+    assert json.loads(str(raw["meta"]))["version"] == 1 and "w" in raw
+    old = Agent.load(OLD_FORMAT)
+    assert old.spec == policy.PolicySpec("linear", (), "exp")
+    rng = np.random.default_rng(0)
+    observations = rng.normal(scale=2.0, size=(50, old.meta.obs_dim))
+    for obs in observations:
+        np.testing.assert_allclose(old.act(obs), _reference_action(raw, obs), rtol=1e-12, atol=1e-14)
+    # written again it is a format-2 file that acts the same, bit for bit
+    old.save(tmp_path / "v2.npz")
+    new = Agent.load(tmp_path / "v2.npz")
+    assert new.meta == old.meta and json.loads(str(_arrays(new)["meta"]))["version"] == 2
+    for obs in observations:
+        np.testing.assert_array_equal(new.act(obs), old.act(obs))
+
+
+def test_mlp_agent_round_trip_and_size_cap(tmp_path):
+    meta = AgentMeta("HalfCheetah-v5", {}, 1000, 17, 6, (-1.0,) * 6, (1.0,) * 6,
+                     policy.PolicySpec("mlp", (64, 64), "exp"))
+    a = Agent.initial(meta, seed=5)
+    assert set(a.params) == {"w0", "b0", "w1", "b1", "w2", "b2"}
+    a.save(tmp_path / "m.npz")
+    b = Agent.load(tmp_path / "m.npz")
+    assert b.meta == meta and a.to_bytes() == b.to_bytes()
+    obs = np.linspace(-1, 1, 17)
+    np.testing.assert_array_equal(a.act(obs), b.act(obs))
+    assert len(a.to_bytes()) <= max_file_bytes(meta)
+    # the cap follows the pool's shapes: a linear Swimmer agent's is far below this MLP's
+    assert len(agent().to_bytes()) <= max_file_bytes(META) < 150_000 < max_file_bytes(meta)

@@ -40,7 +40,11 @@ def test_single_member_run_writes_the_pool_files(single_pool):
     best = Agent.load(d / "best.npz")
     assert best.meta.env == "Swimmer-v5" and best.meta.max_episode_steps == 60
     best_it = json.loads((d / "best.json").read_text())["iteration"]
-    assert best.norm.count == best_it * 4 * 60  # every training observation so far, none from evaluation
+    # every training observation of the best agent's line so far (a parent win trains nothing), none
+    # from evaluation
+    trained = sum(json.loads((d / f"iterations/{i:06d}/selected.json").read_text())["winner"] == "branch"
+                  for i in range(1, best_it + 1))
+    assert best.norm.count == trained * 4 * 60
 
 
 def test_status_json_has_the_contract_keys(single_pool):
@@ -52,7 +56,11 @@ def test_status_json_has_the_contract_keys(single_pool):
     assert st["best"]["iteration"] == 1 + int(np.argmax(rets))
     for h in st["history"]:
         (m,) = h["members"]
-        assert h["selected_member"] == 0 and m["eval_return"] == h["eval_return"]
+        if h["winner"] == "branch":
+            assert h["selected_member"] == 0 and m["eval_return"] == h["eval_return"]
+        else:  # the parent, re-scored on the same episodes, beat the branch
+            assert h["winner"] == "parent" and h["selected_member"] is None
+            assert h["eval_return"] > m["eval_return"]
         assert m["learning_rate"] == 0.1 and m["train_steps"] == 4 * 60
         assert m["train_seconds"] > 0 and m["eval_seconds"] > 0 and m["wait_seconds"] >= 0
     table = rl_pool("status", single_pool, check=0).stdout
@@ -68,7 +76,8 @@ def test_status_csv_history(single_pool, tmp_path):
     st = json.loads(rl_pool("status", single_pool, "--json", check=0).stdout)
     assert [int(r["iteration"]) for r in rows] == [1, 2, 3]
     assert [float(r["eval_return"]) for r in rows] == [h["eval_return"] for h in st["history"]]
-    assert [int(r["env_steps"]) for r in rows] == [k * (4 * 60 + 2 * 60) for k in (1, 2, 3)]
+    # training, evaluation and the parent's re-scoring on the same episodes
+    assert [int(r["env_steps"]) for r in rows] == [k * (4 * 60 + 2 * 60 + 2 * 60) for k in (1, 2, 3)]
     assert float(rows[-1]["best_so_far"]) == st["best"]["eval_return"]
     assert rows[0]["member0_learning_rate"] == "0.1"
 

@@ -28,32 +28,101 @@ def test_beta_log_prob_finite_at_exact_bounds(u):
     np.testing.assert_allclose(ours, scipy.stats.beta.logpdf(clipped, a, b), rtol=1e-9)
 
 
-@pytest.mark.parametrize("kind, link", [
-    ("linear", lambda z: np.log1p(np.exp(z)) + 1),
-    ("linear-exp", lambda z: np.exp(np.minimum(z, policy.Z_MAX)) + 1),
-])
-def test_beta_params_links(kind, link):
-    rng = np.random.default_rng(1)
-    w = rng.normal(scale=3, size=(5, 6))
-    x = rng.normal(size=(7, 4))
-    a, b = policy.beta_params(w, x, policy=kind)
-    z = np.hstack([x, np.ones((7, 1))]) @ w
-    np.testing.assert_allclose(a, link(z[:, :3]))
-    np.testing.assert_allclose(b, link(z[:, 3:]))
+SPECS = [policy.PolicySpec("linear", (), "exp"), policy.PolicySpec("linear", (), "softplus"),
+         policy.PolicySpec("mlp", (5,), "exp"), policy.PolicySpec("mlp", (6, 4), "softplus")]
+LINKS = {"softplus": lambda z: np.log1p(np.exp(z)) + 1,
+         "exp": lambda z: np.exp(np.minimum(z, policy.Z_MAX)) + 1}
+
+
+def _random_params(spec, obs, act, seed, scale=1.0):
+    rng = np.random.default_rng(seed)
+    return {k: rng.normal(scale=scale, size=s) for k, s in policy.param_shapes(spec, obs, act).items()}
+
+
+def _reference_z(spec, params, x):
+    """The pre-activations by a plain per-row loop over the layers (independent of the vectorised code)."""
+    out = []
+    for row in x:
+        if spec.kind == "linear":
+            out.append(np.append(row, 1.0) @ params["w"])
+            continue
+        h = row
+        for k in range(len(spec.hidden)):
+            h = np.array([np.tanh(sum(h[i] * params[f"w{k}"][i, j] for i in range(len(h)))
+                                  + params[f"b{k}"][j]) for j in range(spec.hidden[k])])
+        last = len(spec.hidden)
+        out.append(h @ params[f"w{last}"] + params[f"b{last}"])
+    return np.array(out)
+
+
+@pytest.mark.parametrize("spec", SPECS, ids=str)
+def test_beta_params_match_a_layer_by_layer_reference(spec):
+    params = _random_params(spec, 4, 3, seed=1, scale=1.5)
+    x = np.random.default_rng(1).normal(size=(7, 4))
+    a, b = policy.beta_params(params, x, spec)
+    z = _reference_z(spec, params, x)
+    np.testing.assert_allclose(a, LINKS[spec.link](z[:, :3]), rtol=1e-12)
+    np.testing.assert_allclose(b, LINKS[spec.link](z[:, 3:]), rtol=1e-12)
     assert a.min() >= 1 and b.min() >= 1
 
 
-def test_log_prob_jax_equals_numpy():
+@pytest.mark.parametrize("spec", SPECS, ids=str)
+def test_log_prob_jax_equals_numpy(spec):
     import jax.numpy as jnp
     from jax.scipy.special import gammaln
 
+    params = _random_params(spec, 3, 2, seed=2)
     rng = np.random.default_rng(2)
-    w = rng.normal(size=(4, 4))
     x = rng.normal(size=(10, 3))
     u = rng.uniform(size=(10, 2))
-    np.testing.assert_allclose(policy.log_prob_unit(w, x, u),
-                               np.asarray(policy.log_prob_unit(jnp.asarray(w), jnp.asarray(x), jnp.asarray(u),
+    jparams = {k: jnp.asarray(v) for k, v in params.items()}
+    np.testing.assert_allclose(policy.log_prob_unit(params, x, u, spec),
+                               np.asarray(policy.log_prob_unit(jparams, jnp.asarray(x), jnp.asarray(u), spec,
                                                                xp=jnp, gammaln=gammaln)), rtol=1e-10)
+    np.testing.assert_allclose(policy.preactivations(params, x, spec),
+                               np.asarray(policy.preactivations(jparams, jnp.asarray(x), spec, xp=jnp)),
+                               rtol=1e-12)
+
+
+def test_mlp_log_density_matches_scipy():
+    spec = policy.PolicySpec("mlp", (8, 8), "exp")
+    params = _random_params(spec, 5, 3, seed=9, scale=0.7)
+    rng = np.random.default_rng(9)
+    x = rng.normal(size=(6, 5))
+    u = rng.uniform(0.01, 0.99, size=(6, 3))
+    z = _reference_z(spec, params, x)
+    a, b = LINKS["exp"](z[:, :3]), LINKS["exp"](z[:, 3:])
+    want = scipy.stats.beta.logpdf(u, a, b).sum(axis=1)
+    np.testing.assert_allclose(policy.log_prob_unit(params, x, u, spec), want, rtol=1e-10)
+
+
+def test_init_is_deterministic_from_the_seed_and_starts_at_the_same_policy():
+    spec = policy.PolicySpec("mlp", (64, 64), "exp")
+    p0 = policy.init_params(spec, 17, 6, seed=3)
+    p0b = policy.init_params(spec, 17, 6, seed=3)
+    p1 = policy.init_params(spec, 17, 6, seed=4)
+    assert list(p0) == ["w0", "b0", "w1", "b1", "w2", "b2"]
+    assert {k: v.shape for k, v in p0.items()} == policy.param_shapes(spec, 17, 6)
+    for k in p0:
+        np.testing.assert_array_equal(p0[k], p0b[k])
+    assert not np.array_equal(p0["w0"], p1["w0"])
+    # LeCun scaling of hidden weights; the output layer starts at zero: alpha = beta = 2 everywhere
+    assert np.std(p0["w1"]) == pytest.approx(1 / 8, rel=0.1)
+    x = np.random.default_rng(0).normal(size=(5, 17))
+    for s in (spec, policy.PolicySpec()):
+        a, b = policy.beta_params(policy.init_params(s, 17, 6, seed=3), x, s)
+        np.testing.assert_array_equal(a, 2.0)
+        np.testing.assert_array_equal(b, 2.0)
+
+
+def test_policy_spec_refuses_nonsense():
+    for bad in [("conv", ()), ("linear", (3,)), ("mlp", ()), ("mlp", (0,)), ("mlp", (10**6,))]:
+        with pytest.raises(ValueError):
+            policy.PolicySpec(*bad)
+    assert policy.PolicySpec.from_json("linear-exp") == policy.PolicySpec("linear", (), "exp")
+    assert policy.PolicySpec.from_json("linear") == policy.PolicySpec("linear", (), "softplus")
+    spec = policy.PolicySpec("mlp", (3, 2), "softplus")
+    assert policy.PolicySpec.from_json(spec.to_json()) == spec
 
 
 def _loop_returns(r, gamma):
@@ -116,72 +185,83 @@ def test_normalizer_clips_and_starts_as_identity():
     assert normalizer.normalize(st, np.array([1e6, -1e6])).tolist() == [normalizer.CLIP, -normalizer.CLIP]
 
 
-def _batch(seed=6, B=3, T=5, obs=3, act=2):
+def _batch(seed=6, B=3, T=5, obs=3, act=2, spec=SPECS[0]):
     rng = np.random.default_rng(seed)
-    w = rng.normal(scale=0.5, size=(obs + 1, 2 * act))
+    params = _random_params(spec, obs, act, seed, scale=0.5)
     x = rng.normal(size=(B, T, obs))
     u = rng.uniform(0.01, 0.99, size=(B, T, act))
     adv = rng.normal(size=(B, T))
     mask = np.ones((B, T))
     mask[1, 3:] = 0
-    return w, x, u, adv, mask
+    return params, x, u, adv, mask
 
 
-@pytest.mark.parametrize("kind", policy.POLICIES)
-def test_policy_gradient_matches_finite_differences(kind):
-    w, x, u, adv, mask = _batch()
+@pytest.mark.parametrize("spec", SPECS, ids=str)
+def test_policy_gradient_matches_finite_differences(spec):
+    params, x, u, adv, mask = _batch(spec=spec)
 
-    def J(wv):
-        logp = policy.log_prob_unit(wv, x, u, gammaln=scipy.special.gammaln, policy=kind)
+    def J(p):
+        logp = policy.log_prob_unit(p, x, u, spec, gammaln=scipy.special.gammaln)
         return (logp * adv * mask).sum() / mask.sum()
 
-    g = np.asarray(learner.policy_gradient(w, x, u, adv, mask, kind))
+    g = learner.policy_gradient(params, x, u, adv, mask, spec)
+    assert set(g) == set(params)
     h = 1e-6
-    fd = np.zeros_like(w)
-    for idx in np.ndindex(w.shape):
-        e = np.zeros_like(w)
-        e[idx] = h
-        fd[idx] = (J(w + e) - J(w - e)) / (2 * h)
-    np.testing.assert_allclose(g, fd, rtol=1e-6, atol=1e-8)
+    for name, w in params.items():
+        fd = np.zeros_like(w)
+        for idx in np.ndindex(w.shape):
+            e = np.zeros_like(w)
+            e[idx] = h
+            fd[idx] = (J(params | {name: w + e}) - J(params | {name: w - e})) / (2 * h)
+        np.testing.assert_allclose(np.asarray(g[name]), fd, rtol=1e-6, atol=1e-8, err_msg=name)
 
 
 def test_padding_does_not_change_the_gradient():
-    w, x, u, adv, mask = _batch()
-    g1 = np.asarray(learner.policy_gradient(w, x, u, adv, mask))
+    spec = SPECS[2]
+    params, x, u, adv, mask = _batch(spec=spec)
+    g1 = learner.policy_gradient(params, x, u, adv, mask, spec)
     x2, u2, adv2 = x.copy(), u.copy(), adv.copy()
     x2[mask == 0] = 123.0
     u2[mask == 0] = 0.5
     adv2[mask == 0] = -9.0
-    g2 = np.asarray(learner.policy_gradient(w, x2, u2, adv2, mask))
-    np.testing.assert_array_equal(g1, g2)
+    g2 = learner.policy_gradient(params, x2, u2, adv2, mask, spec)
+    for k in params:
+        np.testing.assert_array_equal(np.asarray(g1[k]), np.asarray(g2[k]))
 
 
-def test_adam_and_normalized_steps_match_hand_computation():
-    w, x, u, adv, mask = _batch()
-    g = np.asarray(learner.policy_gradient(w, x, u, adv, mask))
-    opt = learner.init_opt_state(w)
-    w1, opt1, gnorm = learner.update(w, opt, x, u, adv, mask, 0.01, "adam")
-    m = 0.1 * g
-    v = 0.001 * g * g
-    want = w + 0.01 * (m / 0.1) / (np.sqrt(v / 0.001) + learner.ADAM_EPS)
-    np.testing.assert_allclose(w1, want, rtol=1e-10)
-    assert opt1.t == 1 and gnorm == pytest.approx(np.linalg.norm(g))
-    w2, _, _ = learner.update(w, opt, x, u, adv, mask, 0.05, "normalized")
-    np.testing.assert_allclose(np.linalg.norm(w2 - w), 0.05, rtol=1e-10)
-    np.testing.assert_allclose((w2 - w) / 0.05, g / np.linalg.norm(g), rtol=1e-10)
+@pytest.mark.parametrize("spec", [SPECS[0], SPECS[3]], ids=str)
+def test_adam_and_normalized_steps_match_hand_computation(spec):
+    params, x, u, adv, mask = _batch(spec=spec)
+    g = {k: np.asarray(v) for k, v in learner.policy_gradient(params, x, u, adv, mask, spec).items()}
+    gnorm_want = np.sqrt(sum((v * v).sum() for v in g.values()))
+    opt = learner.init_opt_state(params)
+    p1, opt1, gnorm = learner.update(params, opt, x, u, adv, mask, 0.01, "adam", spec)
+    for k in params:
+        m = 0.1 * g[k]
+        v = 0.001 * g[k] * g[k]
+        want = params[k] + 0.01 * (m / 0.1) / (np.sqrt(v / 0.001) + learner.ADAM_EPS)
+        np.testing.assert_allclose(p1[k], want, rtol=1e-10)
+        np.testing.assert_allclose(opt1.m[k], m, rtol=1e-12)
+    assert opt1.t == 1 and gnorm == pytest.approx(gnorm_want)
+    p2, _, _ = learner.update(params, opt, x, u, adv, mask, 0.05, "normalized", spec)
+    step = np.sqrt(sum(((p2[k] - params[k]) ** 2).sum() for k in params))
+    assert step == pytest.approx(0.05, rel=1e-10)
+    for k in params:
+        np.testing.assert_allclose((p2[k] - params[k]) / 0.05, g[k] / gnorm_want, rtol=1e-9, atol=1e-14)
 
 
-def test_gradient_ascent_raises_objective():
-    w, x, u, adv, mask = _batch(seed=7)
-    j0 = float(learner.objective(w, x, u, adv, mask))
-    w1, _, _ = learner.update(w, learner.init_opt_state(w), x, u, adv, mask, 1e-3, "normalized")
-    assert float(learner.objective(w1, x, u, adv, mask)) > j0
+@pytest.mark.parametrize("spec", [SPECS[0], SPECS[2]], ids=str)
+def test_gradient_ascent_raises_objective(spec):
+    params, x, u, adv, mask = _batch(seed=7, spec=spec)
+    j0 = float(learner.objective(params, x, u, adv, mask, spec))
+    p1, _, _ = learner.update(params, learner.init_opt_state(params), x, u, adv, mask, 1e-3, "normalized", spec)
+    assert float(learner.objective(p1, x, u, adv, mask, spec)) > j0
 
 
 def test_update_refuses_mismatched_shapes():
-    w, x, u, adv, mask = _batch()
+    params, x, u, adv, mask = _batch()
     with pytest.raises(ValueError):
-        learner.update(w, learner.init_opt_state(w), x[:, :-1], u, adv, mask, 0.1, "adam")
+        learner.update(params, learner.init_opt_state(params), x[:, :-1], u, adv, mask, 0.1, "adam", SPECS[0])
 
 
 def test_adapted_learning_rate_rule():

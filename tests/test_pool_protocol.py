@@ -13,8 +13,18 @@ from rl_pool.errors import UsageError
 from .helpers import Evil, agent, fake_initial, make_pool
 
 
-def _deposit(paths, i, m, ret, seed=None):
-    return pool.deposit(paths, i, m, agent(m if seed is None else seed), {"eval_return": ret})
+def _deposit(paths, i, m, ret, seed=None, parent=None, parent_sha=None):
+    extra = {}
+    if parent is not None:
+        prev = pool.read_selected(paths, i - 1)
+        extra = {"parent_eval_return": parent, "parent_sha256": parent_sha or prev["agent_sha256"]}
+    return pool.deposit(paths, i, m, agent(m if seed is None else seed), {"eval_return": ret, **extra})
+
+
+def _decide(paths, cfg, i, members):
+    sel = pool.select(paths, i, cfg, _like(paths), set(members), "complete", pool.read_selected(paths, i - 1))
+    doc, _ = pool.publish_selection(paths, sel, by=0)
+    return doc
 
 
 def _like(paths):
@@ -26,13 +36,13 @@ def test_init_writes_config_initial_and_selection_zero(tmp_path):
     assert cfg.pool_size == 2 and pool.last_selected(paths) == 0
     sel = pool.read_selected(paths, 0)
     assert sel["agent"] == "iterations/000000/initial.npz"
-    assert pool.load_selected_agent(paths, 0).w.shape == (9, 4)
+    assert pool.load_selected_agent(paths, 0).params["w"].shape == (9, 4)
     saved = json.loads(open(paths.pool_json).read())
-    assert saved["protocol"] == 1 and saved["pool_size"] == 2
+    assert saved["protocol"] == 2 and saved["pool_size"] == 2
 
 
 def test_reopening_with_other_settings_is_refused_and_changes_nothing(tmp_path):
-    paths, _ = make_pool(tmp_path / "p")
+    paths, cfg = make_pool(tmp_path / "p")
     before = {p: open(os.path.join(dp, p), "rb").read() for dp, _, fs in os.walk(paths.root) for p in fs}
     with pytest.raises(UsageError, match="--pool-size 2"):
         make_pool(tmp_path / "p", pool_size=3)
@@ -64,12 +74,12 @@ def test_choose_highest_return_ties_to_lowest_member():
 
 
 def test_selection_is_argmax_over_valid_deposits(tmp_path):
-    paths, _ = make_pool(tmp_path / "p", pool_size=3)
+    paths, cfg = make_pool(tmp_path / "p", pool_size=3)
     _deposit(paths, 1, 0, 10.0)
     _deposit(paths, 1, 1, 12.5)
     _deposit(paths, 1, 2, 12.5)
     have = pool.present(paths, 1, 3)
-    sel = pool.select(paths, 1, 3, _like(paths), have, "complete", pool.read_selected(paths, 0))
+    sel = pool.select(paths, 1, cfg, _like(paths), have, "complete", pool.read_selected(paths, 0))
     assert sel["member"] == 1 and sel["eval_return"] == 12.5
     assert [c["member"] for c in sel["considered"]] == [0, 1, 2] and sel["skipped"] == []
     _, created = pool.publish_selection(paths, sel, by=0)
@@ -77,7 +87,7 @@ def test_selection_is_argmax_over_valid_deposits(tmp_path):
 
 
 def test_stray_files_are_ignored_and_temp_files_never_count(tmp_path):
-    paths, _ = make_pool(tmp_path / "p", pool_size=2)
+    paths, cfg = make_pool(tmp_path / "p", pool_size=2)
     d = paths.iteration(1)
     os.makedirs(d)
     for name in ["member-007.json", "member-1.json", "member-0001.json", "notes.txt", "member-000.json.bak",
@@ -89,14 +99,14 @@ def test_stray_files_are_ignored_and_temp_files_never_count(tmp_path):
 
 
 def test_hostile_and_broken_deposits_are_skipped_with_reasons(tmp_path):
-    paths, _ = make_pool(tmp_path / "p", pool_size=4)
+    paths, cfg = make_pool(tmp_path / "p", pool_size=4)
     marker = tmp_path / "code-ran"
     _deposit(paths, 1, 0, 3.0)
     # 1: a pickled object inside the .npz claiming a huge return
     with np.load(io.BytesIO(agent().to_bytes())) as z:
         arrays = {k: z[k] for k in z.files}
     buf = io.BytesIO()
-    np.savez(buf, **(arrays | {"w": np.array([Evil(marker)], dtype=object)}))
+    np.savez(buf, **(arrays | {"param.w": np.array([Evil(marker)], dtype=object)}))
     data = buf.getvalue()
     open(paths.deposit_npz(1, 1), "wb").write(data)
     fsutil.write_json(paths.deposit_json(1, 1), {"iteration": 1, "member": 1, "eval_return": 1e9,
@@ -107,7 +117,7 @@ def test_hostile_and_broken_deposits_are_skipped_with_reasons(tmp_path):
     _deposit(paths, 1, 3, 1.0)
     doc = json.loads(open(paths.deposit_json(1, 3)).read())
     open(paths.deposit_json(1, 3), "w").write(json.dumps(doc | {"eval_return": float("nan")}))
-    sel = pool.select(paths, 1, 4, _like(paths), pool.present(paths, 1, 4), "complete",
+    sel = pool.select(paths, 1, cfg, _like(paths), pool.present(paths, 1, 4), "complete",
                       pool.read_selected(paths, 0))
     assert sel["member"] == 0
     reasons = {s["member"]: s["reason"] for s in sel["skipped"]}
@@ -117,52 +127,52 @@ def test_hostile_and_broken_deposits_are_skipped_with_reasons(tmp_path):
 
 
 def test_swapped_agent_or_other_env_is_skipped(tmp_path):
-    paths, _ = make_pool(tmp_path / "p", pool_size=2)
+    paths, cfg = make_pool(tmp_path / "p", pool_size=2)
     _deposit(paths, 1, 0, 3.0)
     _deposit(paths, 1, 1, 5.0)
     open(paths.deposit_npz(1, 1), "wb").write(agent(9).to_bytes())  # not the agent its JSON hashed
-    sel = pool.select(paths, 1, 2, _like(paths), {0, 1}, "complete", pool.read_selected(paths, 0))
+    sel = pool.select(paths, 1, cfg, _like(paths), {0, 1}, "complete", pool.read_selected(paths, 0))
     assert sel["member"] == 0 and "hash" in sel["skipped"][0]["reason"]
 
 
 def test_no_valid_deposit_carries_the_previous_agent_over(tmp_path):
-    paths, _ = make_pool(tmp_path / "p", pool_size=2)
+    paths, cfg = make_pool(tmp_path / "p", pool_size=2)
     open(os.path.join(paths.iteration(0), "..", "x"), "w").close()
     os.makedirs(paths.iteration(1))
     open(paths.deposit_json(1, 0), "w").write("nope")
-    sel = pool.select(paths, 1, 2, _like(paths), {0}, "timeout", pool.read_selected(paths, 0))
+    sel = pool.select(paths, 1, cfg, _like(paths), {0}, "timeout", pool.read_selected(paths, 0))
     assert sel["member"] is None and sel["carried_from"] == 0
     pool.publish_selection(paths, sel, by=0)
     assert pool.load_selected_agent(paths, 1).to_bytes() == pool.load_selected_agent(paths, 0).to_bytes()
 
 
 def test_first_selection_written_wins(tmp_path):
-    paths, _ = make_pool(tmp_path / "p", pool_size=2)
+    paths, cfg = make_pool(tmp_path / "p", pool_size=2)
     _deposit(paths, 1, 0, 1.0)
     prev = pool.read_selected(paths, 0)
-    alone = pool.select(paths, 1, 2, _like(paths), {0}, "timeout", prev)
+    alone = pool.select(paths, 1, cfg, _like(paths), {0}, "timeout", prev)
     doc1, c1 = pool.publish_selection(paths, alone, by=0)
     _deposit(paths, 1, 1, 99.0)
-    full = pool.select(paths, 1, 2, _like(paths), {0, 1}, "complete", prev)
+    full = pool.select(paths, 1, cfg, _like(paths), {0, 1}, "complete", prev)
     doc2, c2 = pool.publish_selection(paths, full, by=1)
     assert (c1, c2) == (True, False)
     assert doc2["member"] == doc1["member"] == 0
 
 
 def test_selection_pointing_outside_the_pool_is_refused(tmp_path):
-    paths, _ = make_pool(tmp_path / "p", pool_size=1)
+    paths, cfg = make_pool(tmp_path / "p", pool_size=1)
     with pytest.raises(ValueError, match="outside"):
         paths.resolve("../../etc/passwd")
 
 
 def test_gc_keeps_selected_agent_and_all_json(tmp_path):
-    paths, _ = make_pool(tmp_path / "p", pool_size=3)
+    paths, cfg = make_pool(tmp_path / "p", pool_size=3)
     for m, r in enumerate([1.0, 7.0, 2.0]):
         _deposit(paths, 1, m, r)
     open(os.path.join(paths.iteration(1), f".member-002.npz.tmp-{pool.HOST.split('.')[0]}-{2**22 + 4321}-x"), "w").close()  # a dead writer's
     live = f".member-000.json.tmp-{pool.HOST.split('.')[0]}-{os.getpid()}-y"
     open(os.path.join(paths.iteration(1), live), "w").close()  # a live writer's: kept
-    sel = pool.select(paths, 1, 3, _like(paths), {0, 1, 2}, "complete", pool.read_selected(paths, 0))
+    sel = pool.select(paths, 1, cfg, _like(paths), {0, 1, 2}, "complete", pool.read_selected(paths, 0))
     pool.publish_selection(paths, sel, by=0)
     assert pool.collect_garbage(paths, 1) == 3
     names = sorted(os.listdir(paths.iteration(1)))
@@ -171,10 +181,10 @@ def test_gc_keeps_selected_agent_and_all_json(tmp_path):
 
 
 def test_update_best_only_on_improvement(tmp_path):
-    paths, _ = make_pool(tmp_path / "p", pool_size=1)
+    paths, cfg = make_pool(tmp_path / "p", pool_size=1)
     for i, r in [(1, 5.0), (2, 3.0), (3, 8.0)]:
         _deposit(paths, i, 0, r, seed=i)
-        sel = pool.select(paths, i, 1, _like(paths), {0}, "complete", pool.read_selected(paths, i - 1))
+        sel = pool.select(paths, i, cfg, _like(paths), {0}, "complete", pool.read_selected(paths, i - 1))
         pool.publish_selection(paths, sel, by=0)
         pool.update_best(paths, sel)
         best = json.loads(open(paths.best_json).read())
@@ -193,7 +203,7 @@ def test_atomic_write_leaves_no_temp_and_create_exclusive_is_once(tmp_path):
 
 
 def test_liveness_judges_change_not_clocks(tmp_path):
-    paths, _ = make_pool(tmp_path / "p", pool_size=2)
+    paths, cfg = make_pool(tmp_path / "p", pool_size=2)
     live = pool.Liveness(paths, timeout=0.2)
     assert live.stale(1) is None  # never seen: not stale until the timeout passes
     import time
@@ -226,3 +236,61 @@ def test_barrier_lists_again_after_a_stale_verdict(tmp_path):
                        liveness=LateThenStopped(paths, 60))
     assert res.selection["member"] == 2 and res.selection["skipped"] == []
     assert res.selection["quorum_reason"] == "complete"
+
+
+def test_parent_competes_and_keeps_the_pool_from_losing_ground(tmp_path):
+    paths, cfg = make_pool(tmp_path / "p", pool_size=3)
+    assert cfg.selection == "parent"
+    start = pool.read_selected(paths, 0)
+    # every branch is worse than the agent they started from, re-scored on the same episodes
+    for m, r in enumerate([4.0, 6.0, 5.0]):
+        _deposit(paths, 1, m, r, parent=9.0)
+    sel = _decide(paths, cfg, 1, {0, 1, 2})
+    assert (sel["winner"], sel["member"], sel["eval_return"]) == ("parent", None, 9.0)
+    assert sel["agent_sha256"] == start["agent_sha256"] and sel["best_branch"] == {"member": 1, "eval_return": 6.0}
+    assert pool.load_selected_agent(paths, 1).to_bytes() == pool.load_selected_agent(paths, 0).to_bytes()
+    # a branch that ties with the parent has not lost ground: it wins (then lowest member among tied branches)
+    for m, r in enumerate([9.0, 9.0, 1.0]):
+        _deposit(paths, 2, m, r, seed=10 + m, parent=9.0)
+    sel = _decide(paths, cfg, 2, {0, 1, 2})
+    assert (sel["winner"], sel["member"]) == ("branch", 0)
+    assert sel["parent"] == {"iteration": 1, "member": None, "agent_sha256": start["agent_sha256"],
+                             "eval_return": 9.0}
+
+
+def test_parent_score_needs_the_right_parent_and_the_parent_rule(tmp_path):
+    paths, cfg = make_pool(tmp_path / "p", pool_size=2)
+    # member 0 reports a score for some other agent: not the parent's; member 1's counts
+    _deposit(paths, 1, 0, 3.0, parent=100.0, parent_sha="0" * 64)
+    _deposit(paths, 1, 1, 2.0, parent=5.0)
+    sel = pool.select(paths, 1, cfg, _like(paths), {0, 1}, "complete", pool.read_selected(paths, 0))
+    assert sel["winner"] == "parent" and sel["eval_return"] == 5.0
+    # the old rule (branches only) ignores the parent
+    paths2, cfg2 = make_pool(tmp_path / "q", pool_size=2, selection="branches")
+    _deposit(paths2, 1, 0, 3.0, parent=100.0)
+    _deposit(paths2, 1, 1, 2.0, parent=100.0)
+    sel2 = pool.select(paths2, 1, cfg2, _like(paths2), {0, 1}, "complete", pool.read_selected(paths2, 0))
+    assert (sel2["winner"], sel2["member"]) == ("branch", 0)
+
+
+def test_selection_is_a_pure_function_of_the_files(tmp_path):
+    paths, cfg = make_pool(tmp_path / "p", pool_size=3)
+    for m, r in [(2, 4.0), (0, 7.0), (1, 7.5)]:  # written in another order than member order
+        _deposit(paths, 1, m, r, parent=7.2)
+    prev = pool.read_selected(paths, 0)
+    picks = [pool.select(paths, 1, cfg, _like(paths), {0, 1, 2}, "complete", prev) for _ in range(3)]
+    assert picks[0] == picks[1] == picks[2] and picks[0]["member"] == 1
+
+
+def test_revert_to_the_best_after_k_iterations_without_improvement(tmp_path):
+    paths, cfg = make_pool(tmp_path / "p", pool_size=1, selection="branches", revert_after=2)
+    sels = {}
+    for i, r in [(1, 5.0), (2, 8.0), (3, 6.0), (4, 7.0), (5, 3.0), (6, 9.0)]:
+        _deposit(paths, i, 0, r, seed=i)
+        sels[i] = _decide(paths, cfg, i, {0})
+    assert [sels[i]["winner"] for i in range(1, 7)] == ["branch", "branch", "branch", "revert", "branch", "branch"]
+    assert [sels[i]["since_best"] for i in range(1, 7)] == [0, 0, 1, 0, 1, 0]
+    assert sels[4]["reverted_to"] == 2 and sels[4]["eval_return"] == 8.0
+    assert sels[4]["instead"] == {"winner": "branch", "member": 0, "eval_return": 7.0}
+    assert pool.load_selected_agent(paths, 4).to_bytes() == agent(2).to_bytes()
+    assert sels[6]["best"]["iteration"] == 6
