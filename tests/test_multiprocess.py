@@ -28,8 +28,9 @@ def history(d):
             p = d / f"iterations/{i:06d}/member-{m:03d}.json"
             if p.exists():
                 doc = json.loads(p.read_text())
-                deps[m] = (doc["eval_return"], doc["eval_returns"], doc["agent_sha256"], doc["learning_rate"])
-        out.append((sel["member"], sel["eval_return"], sel["agent_sha256"], deps))
+                deps[m] = (doc["eval_return"], doc["eval_returns"], doc["agent_sha256"], doc["learning_rate"],
+                           doc["parent_eval_return"])
+        out.append((sel["member"], sel["eval_return"], sel["agent_sha256"], deps, sel["winner"]))
         i += 1
     best = json.loads((d / "best.json").read_text())
     out.append(("best", best["iteration"], best["member"], best["eval_return"],
@@ -57,17 +58,26 @@ def test_two_member_pool_end_to_end(reference):
     hist = hist[:-1]  # the last entry is best.json
     assert len(hist) == ITERS
     best = (None, float("-inf"))
-    for i, (member, ret, _sha, deps) in enumerate(hist, start=1):
+    for i, (member, ret, sha, deps, winner) in enumerate(hist, start=1):
         assert set(deps) == {0, 1}, f"iteration {i} lacks a deposit"
-        # selection = argmax with ties to the lowest member
+        # both members re-scored the parent on the same episodes, and agree
+        parent = deps[0][4]
+        assert deps[1][4] == parent
+        # selection = argmax with ties to the lowest member; the parent wins only if strictly better
         want = min(deps, key=lambda m: (-deps[m][0], m))
-        assert member == want and ret == deps[want][0]
+        if parent > deps[want][0]:
+            assert (winner, member, ret) == ("parent", None, parent)
+            assert sha == hist[i - 2][2] if i > 1 else True
+        else:
+            assert (winner, member, ret) == ("branch", want, deps[want][0])
         if i == 1:
             assert deps[0][3] == 0.003 and deps[1][3] == 0.03
         else:  # --lr-adapt 2: the loser of i-1 takes the winner's rate x2 or /2, the winner keeps its own
             prev_winner, prev_deps = hist[i - 2][0], hist[i - 2][3]
             for m in (0, 1):
-                if m == prev_winner:
+                if prev_winner is None:  # the parent won: nobody lost to a branch, rates stay
+                    assert deps[m][3] == prev_deps[m][3]
+                elif m == prev_winner:
                     assert deps[m][3] == prev_deps[m][3]
                 else:
                     assert deps[m][3] / prev_deps[prev_winner][3] in (pytest.approx(2.0), pytest.approx(0.5))
@@ -75,6 +85,8 @@ def test_two_member_pool_end_to_end(reference):
         assert sel["quorum_reason"] == "complete" and sel["skipped"] == []
         if ret > best[1]:
             best = (i, ret)
+    # the run covers both outcomes, so the kill/restart tests below replay a parent win too
+    assert {h[4] for h in hist} == {"branch", "parent"}
     b = json.loads((d / "best.json").read_text())
     assert (b["iteration"], b["eval_return"]) == best
     Agent.load(d / "best.npz")
@@ -140,7 +152,8 @@ def test_member_that_never_comes_back_quorum_lets_the_other_go_on(tmp_path):
     assert proc.returncode == 0
     for i in (1, 2, 3):
         sel = json.loads((d / f"iterations/{i:06d}/selected.json").read_text())
-        assert sel["member"] == 0
+        assert [c["member"] for c in sel["considered"]] == [0] and sel["winner"] in ("branch", "parent")
+        assert sel["member"] == (0 if sel["winner"] == "branch" else None)
         assert sel["skipped"] == [{"member": 1, "reason": "missing"}]
         assert "stale" in sel["quorum_reason"] and "member 1 heartbeat unchanged" in sel["quorum_reason"]
     assert "went on without stale members" in (d / "logs/member-000.log").read_text()
@@ -178,7 +191,7 @@ def test_hostile_deposits_in_a_live_pool_are_skipped_and_never_run(tmp_path):
     with np.load(io.BytesIO(agent().to_bytes())) as z:
         arrays = {k: z[k] for k in z.files}
     buf = io.BytesIO()
-    np.savez(buf, **(arrays | {"w": np.array([Evil(marker)], dtype=object)}))
+    np.savez(buf, **(arrays | {"param.w": np.array([Evil(marker)], dtype=object)}))
     import hashlib
 
     data = buf.getvalue()
@@ -197,7 +210,7 @@ def test_hostile_deposits_in_a_live_pool_are_skipped_and_never_run(tmp_path):
         assert p.returncode == 0, err
     for i in range(1, 5):
         sel = json.loads((d / f"iterations/{i:06d}/selected.json").read_text())
-        assert sel["member"] in (0, 1)
+        assert sel["member"] in ((0, 1) if sel["winner"] == "branch" else (None,))
         (skip,) = sel["skipped"]
         assert skip["member"] == 2 and skip["reason"] != "missing"
     assert not marker.exists()
