@@ -49,6 +49,23 @@ def _explicit(args, cls, skip=()) -> dict:
             if f.name not in skip and getattr(args, f.name, None) is not None}
 
 
+def _apply_preset(args) -> dict:
+    """Fill options left unset from ``--preset``; returns the preset (empty without one)."""
+    if not getattr(args, "preset", None):
+        return {}
+    from . import presets
+
+    chosen = presets.get(args.preset)
+    for key, value in chosen.items():
+        if key == "learning_rates":
+            if getattr(args, "pool_size", None) is None:
+                args.pool_size = len(value)
+            continue
+        if getattr(args, key, None) is None:
+            setattr(args, key, value)
+    return chosen
+
+
 def _member_config(args, **override):
     from .config import MemberConfig
 
@@ -60,6 +77,11 @@ def cmd_train(args) -> int:
     from . import member
     from .config import PoolConfig
 
+    preset = _apply_preset(args)
+    if args.learning_rate is None and preset:
+        from .presets import member_learning_rate
+
+        args.learning_rate = member_learning_rate(preset, args.member or 0, args.pool_size)
     requested = _explicit(args, PoolConfig)
     return member.run(args.pool_dir, requested, _member_config(args), quiet=args.quiet)
 
@@ -68,9 +90,16 @@ def cmd_launch(args) -> int:
     from . import launch
     from .config import MemberConfig, PoolConfig
 
+    if args.learning_rates and args.pool_size is None:
+        args.pool_size = len(args.learning_rates)  # one rate per member: the list says how many
+    preset = _apply_preset(args)
+    lrs = args.learning_rates
+    if lrs is None and args.learning_rate is None and preset.get("learning_rates") \
+            and len(preset["learning_rates"]) == args.pool_size:
+        lrs = list(preset["learning_rates"])
     requested = _explicit(args, PoolConfig)
     member_opts = _explicit(args, MemberConfig, skip=("member", "learning_rate"))
-    return launch.launch(args.pool_dir, requested, member_opts, args.learning_rates,
+    return launch.launch(args.pool_dir, requested, member_opts, lrs,
                          args.learning_rate, quiet=args.quiet)
 
 
@@ -127,6 +156,8 @@ def build_parser() -> argparse.ArgumentParser:
     t = sub.add_parser("train", help="run one member of a pool (creates the pool, or resumes it)")
     t.add_argument("--pool-dir", required=True, help="the shared pool directory")
     t.add_argument("--quiet", action="store_true", help="log to the pool's log file only, not stderr")
+    t.add_argument("--preset", default=None, choices=_preset_names(),
+                   help="named settings for a task (README: Presets); explicit options win")
     _add_dataclass_options(t, PoolConfig)
     _add_dataclass_options(t, MemberConfig)
     t.set_defaults(func=cmd_train)
@@ -137,6 +168,8 @@ def build_parser() -> argparse.ArgumentParser:
                     help="one learning rate per member (default: the first member at 1/10 of "
                          "--learning-rate, the others at --learning-rate)")
     la.add_argument("--quiet", action="store_true", help="no progress lines: only the start and the summary")
+    la.add_argument("--preset", default=None, choices=_preset_names(),
+                    help="named settings for a task, learning rates included (README: Presets)")
     _add_dataclass_options(la, PoolConfig)
     _add_dataclass_options(la, MemberConfig, skip=("member",))
     la.set_defaults(func=cmd_launch)
@@ -176,6 +209,12 @@ def build_parser() -> argparse.ArgumentParser:
     rp.add_argument("--camera", default=None, help="a camera of the model (default: 'track' if it has one)")
     rp.set_defaults(func=cmd_replay)
     return p
+
+
+def _preset_names() -> list[str]:
+    from .presets import PRESETS
+
+    return list(PRESETS)
 
 
 def _seed(text: str) -> int:

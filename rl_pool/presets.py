@@ -1,0 +1,38 @@
+"""Named settings for the MuJoCo tasks, found by measurement (see results/<task>/ and the README).
+
+A preset fills in options the command line leaves out: explicit options win.
+Pool-wide values go to ``pool.json`` like any option; ``learning_rates`` gives
+one rate per member (``launch``; ``train --member I`` takes the I-th) and
+``pool_size`` its length.
+"""
+
+from __future__ import annotations
+
+from .errors import UsageError
+
+PRESETS: dict[str, dict] = {
+    "swimmer": {"env": "Swimmer-v5", "learning_rates": [0.01, 0.1]},
+    "halfcheetah": {"env": "HalfCheetah-v5", "learning_rates": [0.01, 0.03]},
+    # Hopper, Walker2d and Ant pay 1 per step for staying alive: subtracted in training (as in
+    # Mania et al. 2018's random search), otherwise REINFORCE learns to stand still.
+    "hopper": {"env": "Hopper-v5", "reward_shift": 1.0, "learning_rates": [0.01, 0.03]},
+    "walker2d": {"env": "Walker2d-v5", "reward_shift": 1.0, "learning_rates": [0.01, 0.03]},
+    "ant": {"env": "Ant-v5", "reward_shift": 1.0, "learning_rates": [0.01, 0.03]},
+    "inverted-double-pendulum": {"env": "InvertedDoublePendulum-v5", "learning_rates": [0.01, 0.1]},
+    "reacher": {"env": "Reacher-v5", "learning_rates": [0.01, 0.1]},
+}
+
+
+def get(name: str) -> dict:
+    try:
+        return PRESETS[name]
+    except KeyError:
+        raise UsageError(f"unknown preset {name!r} (have {', '.join(PRESETS)})") from None
+
+
+def member_learning_rate(preset: dict, member: int, pool_size: int) -> float | None:
+    """The preset's rate for one member, if the preset's list fits this pool."""
+    lrs = preset.get("learning_rates")
+    if lrs and len(lrs) == pool_size and 0 <= member < pool_size:
+        return float(lrs[member])
+    return None
