@@ -100,19 +100,44 @@ def cmd_launch(args) -> int:
     requested = _explicit(args, PoolConfig)
     member_opts = _explicit(args, MemberConfig, skip=("member", "learning_rate"))
     return launch.launch(args.pool_dir, requested, member_opts, lrs,
-                         args.learning_rate, quiet=args.quiet)
+                         args.learning_rate, quiet=args.quiet, interval=args.interval)
 
 
 def cmd_status(args) -> int:
     from . import status
 
+    if args.watch:
+        if args.json or args.csv:
+            raise _usage("--watch shows a live view; it does not combine with --json or --csv")
+        from . import progress
+
+        return progress.watch(args.pool_dir, interval=args.interval,
+                              recent=5 if args.last is None else min(args.last, 50))
     st = status.status(args.pool_dir)
     if args.csv:
         status.write_csv(st, args.csv)
     if args.json:
         print(json.dumps(st, indent=1))
     else:
-        print(status.format_table(st, last=args.last))
+        print(status.format_table(st, last=10 if args.last is None else args.last))
+    return 0
+
+
+def _usage(message: str):
+    from .errors import UsageError
+
+    return UsageError(message)
+
+
+def cmd_compare(args) -> int:
+    from . import compare
+
+    text = compare.compare(args.inputs, out=args.out, threshold=args.threshold,
+                           at_minutes=args.at or compare.DEFAULT_AT,
+                           groups=args.groups, metric=args.metric, title=args.title)
+    print(text)
+    if args.out:
+        print(args.out)
     return 0
 
 
@@ -168,6 +193,9 @@ def build_parser() -> argparse.ArgumentParser:
                     help="one learning rate per member (default: the first member at 1/10 of "
                          "--learning-rate, the others at --learning-rate)")
     la.add_argument("--quiet", action="store_true", help="no progress lines: only the start and the summary")
+    la.add_argument("--interval", type=_positive, default=10.0, metavar="S",
+                    help="seconds between progress lines when stdout is not a terminal (default 10; "
+                         "on a terminal the view is redrawn in place)")
     la.add_argument("--preset", default=None, choices=_preset_names(),
                     help="named settings for a task, learning rates included (README: Presets)")
     _add_dataclass_options(la, PoolConfig)
@@ -177,10 +205,33 @@ def build_parser() -> argparse.ArgumentParser:
     s = sub.add_parser("status", help="show a pool: members, best, recent iterations")
     s.add_argument("pool_dir", help="the pool directory")
     s.add_argument("--json", action="store_true", help="print one JSON object")
-    s.add_argument("--last", type=int, default=10, help="iterations shown in the table (default 10)")
+    s.add_argument("--last", type=int, default=None,
+                   help="iterations shown in the table (default 10; 5 with --watch)")
     s.add_argument("--csv", default=None, metavar="FILE",
                    help="also write the per-iteration history (returns, learning rates, wall time, env steps)")
+    s.add_argument("--watch", action="store_true",
+                   help="follow the pool until Ctrl-C: redrawn in place on a terminal, plain lines otherwise")
+    s.add_argument("--interval", type=_positive, default=None, metavar="S",
+                   help="with --watch: seconds between redraws (terminal, default 0.5) or between lines "
+                        "(pipe or file, default 10)")
     s.set_defaults(func=cmd_status)
+
+    c = sub.add_parser("compare", help="compare runs (seeds, tasks, settings): curves to a PNG and a table")
+    c.add_argument("inputs", nargs="+", metavar="DIR|CSV",
+                   help="pool directories or history.csv files (rl-pool status --csv)")
+    c.add_argument("--out", default=None, metavar="FILE.png", help="draw the curves to this PNG")
+    c.add_argument("--threshold", type=float, default=None, metavar="X",
+                   help="report the wall time and env steps at which each run's return first reached X")
+    c.add_argument("--at", type=_float_list, default=None, metavar="M1,M2,...",
+                   help="minutes at which to report the best return so far (default 1,2,5,10,20, "
+                        "up to the longest run)")
+    c.add_argument("--groups", type=_name_list, default=None, metavar="G1,G2,...",
+                   help="one group name per input (default: pools that differ only in --seed, or CSVs "
+                        "named ...seedN in one folder, form a group)")
+    c.add_argument("--metric", choices=("selected", "best"), default="selected",
+                   help="curve of the selected agent's return (default) or of the best so far")
+    c.add_argument("--title", default=None, help="title of the plot")
+    c.set_defaults(func=cmd_compare)
 
     pl = sub.add_parser("plot", help="plot the per-iteration evaluation return to a PNG")
     pl.add_argument("pool_dir")
@@ -225,6 +276,20 @@ def _seed(text: str) -> int:
     if value < 0:
         raise argparse.ArgumentTypeError("must be >= 0")
     return value
+
+
+def _positive(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not a number: {text!r}") from None
+    if not value > 0 or value == float("inf"):
+        raise argparse.ArgumentTypeError("must be a positive number of seconds")
+    return value
+
+
+def _name_list(text: str) -> list[str]:
+    return [x.strip() for x in text.split(",")]
 
 
 def _float_list(text: str) -> list[float]:

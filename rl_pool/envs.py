@@ -7,6 +7,9 @@ cost about 40% of a Swimmer step here and do nothing a trusted loop needs.
 
 from __future__ import annotations
 
+import logging
+import re
+import threading
 import warnings
 from dataclasses import dataclass
 
@@ -35,9 +38,56 @@ def _gym():
     return gymnasium
 
 
+log = logging.getLogger("rl_pool")
+
+# MuJoCo reports warnings through one process-wide C callback. Its default writes
+# each message to stderr *and* appends it to MUJOCO_LOG.TXT in the working
+# directory. Under mujoco 4 every load of HalfCheetah's XML warns that the
+# compiler attribute 'settotalmass' is deprecated (gymnasium's model, nothing a
+# user can act on): once per env, so a member making 10 envs printed it 10 times.
+# We route the callback to logging instead: deprecations of the model format go
+# to DEBUG, anything else (e.g. "Nan, Inf or huge value in QACC", a simulation
+# going unstable) is logged once per kind at WARNING, in the member's log.
+_DEPRECATED = re.compile(r"\bdeprecated\b", re.IGNORECASE)
+_seen: set[str] = set()
+_seen_lock = threading.Lock()
+_installed = False
+
+
+def _mujoco_warning(message) -> None:
+    try:
+        text = str(message).strip()
+        kind = re.sub(r"[-+]?\d[\d.eE+-]*", "#", text)  # "... at DOF 3 ... Time = 1.2" -> one kind
+        with _seen_lock:
+            first = kind not in _seen
+            _seen.add(kind)
+        if _DEPRECATED.search(text):
+            log.debug("MuJoCo: %s", text)
+        elif first:
+            log.warning("MuJoCo: %s (further warnings of this kind are not shown)", text)
+        else:
+            log.debug("MuJoCo: %s", text)
+    except Exception:  # a callback from C must never raise
+        pass
+
+
+def quiet_mujoco_warnings() -> None:
+    """Route MuJoCo's warnings to logging (idempotent; :func:`make` calls it)."""
+    global _installed
+    if _installed:
+        return
+    try:
+        import mujoco
+    except ImportError:
+        return
+    mujoco.set_mju_user_warning(_mujoco_warning)
+    _installed = True
+
+
 def make(env_id: str, env_kwargs: dict | None = None, render_mode: str | None = None):
     """``(env, info)``: the unwrapped env and its checked description."""
     gym = _gym()
+    quiet_mujoco_warnings()
     kwargs = dict(env_kwargs or {})
     if render_mode is not None:
         kwargs["render_mode"] = render_mode

@@ -149,20 +149,28 @@ def evaluate_bytes(agent_bytes: bytes, episodes: int, workers: int = 1, seed: in
 
 
 def resolve_agent(target: str) -> tuple[str, bytes]:
-    """A pool directory (its best agent) or an agent file -> ``(path, bytes)``, checked."""
+    """A pool directory (its best agent) or an agent file -> ``(path, bytes)``, checked.
+
+    Read bounded and without blocking (:mod:`rl_pool.fsutil`): a pool's ``best.npz``
+    is never read through a symbolic link; an agent file the user names may be one,
+    but must lead to a regular file. Reads only: works on a read-only pool.
+    """
     from . import fsutil, pool
     from .agent import Agent
-    from .errors import UsageError
+    from .errors import AgentFileError, UsageError
 
-    path = target
+    path, root, follow = target, None, True
     if os.path.isdir(target):
         pool.read_config(pool.Paths(target))  # a foreign directory is refused here
-        path = os.path.join(target, "best.npz")
-        if not os.path.exists(path):
+        path, root, follow = os.path.join(target, "best.npz"), target, False
+        if not os.path.lexists(path):
             raise UsageError(f"pool {target} has no best agent yet (no iteration completed)")
-    elif not os.path.exists(target):
+    elif not os.path.lexists(target):
         raise UsageError(f"no agent file or pool directory at {target}")
-    data = fsutil.read_bytes(path)
+    try:
+        data = fsutil.read_bytes(path, fsutil.AGENT_MAX_BYTES, root=root, follow=follow)
+    except OSError as exc:
+        raise AgentFileError(f"cannot read agent {path}: {exc.strerror or exc}") from None
     Agent.from_bytes(data, source=path)  # AgentFileError (a UsageError) if it is not an agent
     return path, data
 

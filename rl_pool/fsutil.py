@@ -4,7 +4,28 @@ Everything written into a pool is written whole or not at all: a temp file in
 the same directory, flushed and fsynced, then ``os.replace`` (atomic on POSIX
 and on NFS). ``create_exclusive`` uses ``os.link`` of a complete temp file,
 which fails if the target exists: an atomic create-once that, unlike
-``O_EXCL`` on old NFS or ``flock``, needs no server-side lock support.
+``O_EXCL`` on old NFS or ``flock``, needs no server-side lock support. A write
+that fails (full disk, read-only filesystem) removes its temp file and raises
+with the real name as ``filename``; nothing half written ever has a real name.
+
+Nothing read from a pool is trusted (DESIGN.md §8). Every read here:
+
+* opens ``O_NONBLOCK`` (a FIFO cannot make it wait) and ``O_NOFOLLOW``, after
+  an ``lstat`` that refuses anything but a regular file (a device is never
+  even opened), and checks the open file again with ``fstat`` (only a file
+  the user names on the command line may be a link, to a regular file);
+* with ``root`` (the pool directory) walks the path from ``root`` one
+  directory at a time with ``O_NOFOLLOW | O_DIRECTORY`` relative to the
+  previous one, so no symlinked directory (``iterations/000003 -> /dev``)
+  leads out of the pool; the pool directory itself is the user's choice and
+  may be a link;
+* refuses a file larger than its cap before reading and reads at most cap + 1
+  bytes, so a file that grows while it is read is refused, not read forever.
+
+A refused file raises :class:`~rl_pool.errors.UnsafeFile` (an ``OSError``):
+selection skips it with its reason, commands print one line and exit 2.
+This relies on POSIX ``openat``/``O_NOFOLLOW`` semantics, which Linux gives on
+local filesystems and on NFS clients alike.
 """
 
 from __future__ import annotations
@@ -14,10 +35,20 @@ import json
 import math
 import os
 import socket
+import stat
 import time
 import uuid
 
+from .errors import UnsafeFile
+
 TMP_MARK = ".tmp-"
+
+#: Cap on a JSON file read from a pool: heartbeats, deposits' metrics and selections are a few KiB.
+JSON_MAX_BYTES = 1 << 20
+#: Cap on an agent file when the pool's shapes are not at hand (``best.npz``, ``evaluate FILE``);
+#: with them, :func:`rl_pool.agent.max_file_bytes` is the cap.
+AGENT_MAX_BYTES = 64 << 20
+_CHUNK = 1 << 20
 
 #: Errors worth one more try on a network filesystem (stale handle, interrupted I/O).
 TRANSIENT = {errno.ESTALE, errno.EIO, errno.EINTR, errno.EAGAIN, errno.ETIMEDOUT}
@@ -43,20 +74,31 @@ def _fsync_dir(d: str) -> None:
         os.close(fd)
 
 
+def _named(exc: OSError, path: str) -> OSError:
+    """``exc`` again, naming ``path`` (the file being written) rather than its temp file."""
+    return OSError(exc.errno, exc.strerror or str(exc), path)  # the errno's own subclass (ENOSPC: OSError)
+
+
 def _write_tmp(path: str, data: bytes) -> str:
     tmp = tmp_name(path)
-    fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o644)
     try:
-        view = memoryview(data)
-        while view:
-            n = os.write(fd, view)
-            view = view[n:]
-        os.fsync(fd)
-    except BaseException:
-        os.close(fd)
+        fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL | os.O_CLOEXEC, 0o644)
+    except OSError as exc:
+        raise _named(exc, path) from None
+    try:
+        try:
+            view = memoryview(data)
+            while view:
+                n = os.write(fd, view)
+                view = view[n:]
+            os.fsync(fd)  # a network filesystem may report a full disk only here or at close
+        finally:
+            os.close(fd)
+    except BaseException as exc:
         _unlink_quiet(tmp)
+        if isinstance(exc, OSError):
+            raise _named(exc, path) from None
         raise
-    os.close(fd)
     return tmp
 
 
@@ -73,8 +115,10 @@ def atomic_write(path, data: bytes, sync_dir: bool = True) -> None:
     tmp = _write_tmp(path, data)
     try:
         os.replace(tmp, path)
-    except BaseException:
+    except BaseException as exc:
         _unlink_quiet(tmp)
+        if isinstance(exc, OSError):
+            raise _named(exc, path) from None
         raise
     if sync_dir:
         _fsync_dir(os.path.dirname(path))
@@ -91,6 +135,9 @@ def create_exclusive(path, data: bytes) -> bool:
         # On NFS a retransmitted LINK whose first reply was lost answers EEXIST even though
         # this call made the link: then the temp file has two names.
         created = os.stat(tmp).st_nlink == 2
+    except OSError as exc:
+        _unlink_quiet(tmp)
+        raise _named(exc, path) from None
     finally:
         _unlink_quiet(tmp)
     if created:
@@ -117,18 +164,133 @@ def write_json(path, obj, sync_dir: bool = True) -> None:
     atomic_write(path, dumps(obj), sync_dir=sync_dir)
 
 
-def read_bytes(path, retries: int = 3, missing_retries: int = 0) -> bytes:
-    """Read a whole file, retrying transient network-filesystem errors with backoff.
+_KINDS = ((stat.S_ISDIR, "a directory"), (stat.S_ISLNK, "a symbolic link"), (stat.S_ISFIFO, "a FIFO"),
+          (stat.S_ISSOCK, "a socket"), (stat.S_ISCHR, "a character device"),
+          (stat.S_ISBLK, "a block device"))
 
-    ``missing_retries``: also retry "no such file" that many times, for files
-    another host's listing says exist (an NFS client may cache a stale
-    negative lookup for a moment).
+
+def _kind(mode: int) -> str:
+    return next((name for test, name in _KINDS if test(mode)), "not a regular file")
+
+
+def _not_regular(st: os.stat_result, path: str) -> UnsafeFile:
+    err = errno.ELOOP if stat.S_ISLNK(st.st_mode) else errno.EISDIR if stat.S_ISDIR(st.st_mode) \
+        else errno.EINVAL
+    return UnsafeFile(err, f"{_kind(st.st_mode)}, not a regular file", path, (st.st_dev, st.st_ino))
+
+
+def _parts(path: str, root: str) -> list[str]:
+    """``path``'s components below ``root``; UnsafeFile if it is not below it."""
+    rel = os.path.relpath(os.path.abspath(path), os.path.abspath(root))
+    parts = [p for p in rel.split(os.sep) if p not in ("", ".")]
+    if ".." in parts:
+        raise UnsafeFile(errno.EXDEV, "outside the pool directory", path)
+    return parts
+
+
+def _open_dir(path: str, root: str | None, target: str | None = None) -> int:
+    """A descriptor of directory ``path``. With ``root``: reached from ``root`` one component at a
+    time, never through a symbolic link (``root`` itself is opened as given). ``target``: the
+    file wanted in it, named in errors (default: ``path``)."""
+    target = path if target is None else target
+    flags = os.O_RDONLY | os.O_DIRECTORY | os.O_CLOEXEC
+    if root is None:
+        return os.open(path or ".", flags)
+    parts = _parts(path, root)
+    fd = os.open(root, flags)
+    try:
+        for k, part in enumerate(parts):
+            try:
+                nfd = os.open(part, flags | os.O_NOFOLLOW, dir_fd=fd)
+            except OSError as exc:
+                if exc.errno in (errno.ELOOP, errno.ENOTDIR):
+                    where = os.path.join(root, *parts[:k + 1])
+                    try:
+                        st = os.stat(part, dir_fd=fd, follow_symlinks=False)
+                        what = _kind(st.st_mode)
+                    except OSError:
+                        what = "not a directory"
+                    why = (f"{what}, not a directory of the pool"
+                           if os.path.abspath(where) == os.path.abspath(target)
+                           else f"reached through {where}, which is {what}, not a directory of the pool")
+                    raise UnsafeFile(exc.errno, why, target) from None
+                raise OSError(exc.errno, exc.strerror, target) from None  # FileNotFoundError & co.
+            os.close(fd)
+            fd = nfd
+    except BaseException:
+        os.close(fd)
+        raise
+    return fd
+
+
+def open_regular(path, root=None, follow: bool = False) -> tuple[int, os.stat_result]:
+    """``(fd, fstat)`` of the regular file ``path``, opened read-only without blocking.
+
+    ``root``: the pool directory ``path`` lies in (see the module docstring).
+    ``follow``: follow a symbolic link in the last component (only for a file the
+    user named, never for a pool file). Anything else raises :class:`UnsafeFile`.
+    """
+    path = os.fspath(path)
+    d, name = os.path.split(os.path.abspath(path))
+    dfd = _open_dir(d, root, path)
+    try:
+        # Look before opening, so a device is never even opened (opening one can have effects).
+        st = os.stat(name, dir_fd=dfd, follow_symlinks=follow)
+        if not stat.S_ISREG(st.st_mode):
+            raise _not_regular(st, path)
+        flags = os.O_RDONLY | os.O_NONBLOCK | os.O_CLOEXEC | (0 if follow else os.O_NOFOLLOW)
+        try:
+            fd = os.open(name, flags, dir_fd=dfd)
+        except OSError as exc:
+            if exc.errno in (errno.ELOOP, errno.ENXIO):  # replaced by a link or a socket since the lstat
+                raise UnsafeFile(exc.errno, "not a regular file", path) from None
+            raise OSError(exc.errno, exc.strerror, path) from None
+    except FileNotFoundError as exc:
+        raise FileNotFoundError(errno.ENOENT, exc.strerror or "No such file or directory", path) from None
+    finally:
+        os.close(dfd)
+    st = os.fstat(fd)
+    if not stat.S_ISREG(st.st_mode):
+        os.close(fd)
+        raise _not_regular(st, path)
+    return fd, st
+
+
+def _read_capped(path, cap: int, root, follow: bool) -> bytes:
+    fd, st = open_regular(path, root, follow)
+    try:
+        if st.st_size > cap:
+            raise UnsafeFile(errno.EFBIG, f"larger than the {cap}-byte cap ({st.st_size} bytes)", path,
+                             (st.st_dev, st.st_ino))
+        chunks, left = [], cap + 1
+        while left > 0:
+            chunk = os.read(fd, min(left, _CHUNK))
+            if not chunk:
+                return b"".join(chunks)
+            chunks.append(chunk)
+            left -= len(chunk)
+        raise UnsafeFile(errno.EFBIG, f"grew past the {cap}-byte cap while being read", path,
+                         (st.st_dev, st.st_ino))
+    finally:
+        os.close(fd)
+
+
+def read_bytes(path, cap: int = AGENT_MAX_BYTES, retries: int = 3, missing_retries: int = 0,
+               root=None, follow: bool = False) -> bytes:
+    """Read a whole regular file of at most ``cap`` bytes, never blocking and never following a
+    link (see the module docstring); :class:`UnsafeFile` if it is anything else.
+
+    Transient network-filesystem errors are retried with backoff. ``missing_retries``:
+    also retry "no such file" that many times, for files another host's listing says
+    exist (an NFS client may cache a stale negative lookup for a moment). A refused
+    file is never retried.
     """
     delay = 0.01
     for attempt in range(max(retries, missing_retries) + 1):
         try:
-            with open(path, "rb") as fh:
-                return fh.read()
+            return _read_capped(path, cap, root, follow)
+        except UnsafeFile:
+            raise
         except FileNotFoundError:
             if attempt >= missing_retries:
                 raise
@@ -140,24 +302,88 @@ def read_bytes(path, retries: int = 3, missing_retries: int = 0) -> bytes:
     raise AssertionError("unreachable")
 
 
-def read_json(path, missing_retries: int = 0):
-    """Parse a JSON file; raises OSError or ValueError (incl. JSONDecodeError)."""
-    return json.loads(read_bytes(path, missing_retries=missing_retries).decode("utf-8"))
+def read_json(path, missing_retries: int = 0, root=None, cap: int = JSON_MAX_BYTES):
+    """Parse a JSON file read as :func:`read_bytes` does; raises OSError (UnsafeFile included)
+    or ValueError (incl. JSONDecodeError, UnicodeDecodeError)."""
+    return json.loads(read_bytes(path, cap, missing_retries=missing_retries, root=root).decode("utf-8"))
 
 
-def listdir(path) -> list[str]:
+def listdir(path, root=None) -> list[str]:
+    """Names in directory ``path`` ([] if it does not exist). With ``root``, ``path`` is reached
+    as in :func:`read_bytes` (a symlinked or non-directory component raises UnsafeFile)."""
+    return [e.name for e in _scan(path, root)]
+
+
+def subdirs(path, root=None) -> list[str]:
+    """Names of the real directories in ``path`` (no symbolic links, no files)."""
+    return [e.name for e in _scan(path, root) if e.is_dir(follow_symlinks=False)]
+
+
+def _scan(path, root) -> list[os.DirEntry]:
+    path = os.fspath(path)
     delay = 0.01
     for attempt in range(4):
         try:
-            return os.listdir(path)
+            if root is None:
+                with os.scandir(path) as it:
+                    return list(it)
+            fd = _open_dir(path, root)
+            try:
+                with os.scandir(fd) as it:
+                    return list(it)
+            finally:
+                os.close(fd)
         except FileNotFoundError:
             return []
+        except UnsafeFile:
+            raise
         except OSError as exc:
             if exc.errno not in TRANSIENT or attempt == 3:
                 raise
             time.sleep(delay)
             delay *= 4
     return []
+
+
+def set_aside(path, ident: tuple[int, int], root=None) -> bool:
+    """Remove the refused thing at ``path`` (``ident``: its ``UnsafeFile.ident``) from the name.
+
+    For create-once names (``selected.json``) and replaced ones (``best.json``) that a
+    stranger has occupied with something the protocol never writes there (a FIFO, a
+    directory, a link, a huge file). What is at the name is renamed aside first
+    (atomic), then looked at: a regular file other than ``ident`` is a writer's whole
+    file that took the name in between, and is put back (``link``, never over another);
+    anything else is removed. True if the name is free of the refused thing. A directory
+    that is not empty stays under a hidden name, which no reader looks at.
+    """
+    path = os.fspath(path)
+    d, name = os.path.split(os.path.abspath(path))
+    aside = f".{name}.refused-{uuid.uuid4().hex[:8]}"
+    dfd = _open_dir(d, root)
+    try:
+        try:
+            os.rename(name, aside, src_dir_fd=dfd, dst_dir_fd=dfd)
+        except FileNotFoundError:
+            return True
+        st = os.stat(aside, dir_fd=dfd, follow_symlinks=False)
+        if stat.S_ISREG(st.st_mode) and (st.st_dev, st.st_ino) != tuple(ident):
+            # A writer's whole file took the name since it was refused: put it back.
+            try:
+                os.link(aside, name, src_dir_fd=dfd, dst_dir_fd=dfd, follow_symlinks=False)
+            except FileExistsError:
+                pass  # yet another file has the name now; that one stands
+            os.unlink(aside, dir_fd=dfd)
+            return False
+        try:
+            if stat.S_ISDIR(st.st_mode):
+                os.rmdir(aside, dir_fd=dfd)
+            else:
+                os.unlink(aside, dir_fd=dfd)
+        except OSError:
+            pass
+        return True
+    finally:
+        os.close(dfd)
 
 
 def is_tmp(name: str) -> bool:

@@ -4,10 +4,13 @@ Each member is a fresh interpreter (``python -m rl_pool train``), never a fork
 of the launcher: JAX and the BLAS libraries start threads that a fork would
 copy in a locked state. Children get the one-thread caps in their environment
 and their own session, so the launcher alone decides when they get a signal.
+Progress (:mod:`rl_pool.progress`) is a live panel on a terminal and plain
+lines in a log.
 """
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import signal
@@ -15,7 +18,7 @@ import subprocess
 import sys
 import time
 
-from . import pool, status
+from . import pool, progress, status
 from .config import MemberConfig
 from .errors import UsageError
 from .threads import capped_environ
@@ -42,7 +45,11 @@ def _args(opts: dict) -> list[str]:
 
 
 def launch(pool_dir: str, requested: dict, member_opts: dict, learning_rates: list[float] | None,
-           base_lr: float | None, quiet: bool = False, print_every: float = 5.0) -> int:
+           base_lr: float | None, quiet: bool = False, interval: float = 10.0) -> int:
+    """Start the members, show progress until they exit; 0, 1 if a member failed, 130 if stopped.
+
+    ``interval``: seconds between plain progress lines when stdout is not a terminal.
+    """
     from .member import check_arguments, make_initial
 
     paths = pool.Paths(pool_dir)
@@ -56,6 +63,8 @@ def launch(pool_dir: str, requested: dict, member_opts: dict, learning_rates: li
     cfg = pool.open_pool(paths, requested, make_initial)  # refuses a mismatched pool before any spawn
 
     procs = []
+    started = time.time()
+    target = member_opts.get("iterations", MemberConfig.iterations)
     env = capped_environ()
     interrupted = False
     # Members run in their own sessions, so the launcher must pass on every way it can be told
@@ -71,7 +80,7 @@ def launch(pool_dir: str, requested: dict, member_opts: dict, learning_rates: li
                                               stdin=subprocess.DEVNULL, env=env, start_new_session=True))
         print(f"launched {n} members on {cfg.env} in {paths.root}; learning rates "
               + ", ".join(f"m{m}={lr:g}" for m, lr in enumerate(lrs)), flush=True)
-        codes = _watch(paths, procs, n, quiet, print_every)
+        codes = _watch(paths, procs, quiet, interval, started, target)
     except KeyboardInterrupt:
         interrupted = True
         print("\nstopping members (deposits on disk are safe; run again to resume)...",
@@ -82,8 +91,8 @@ def launch(pool_dir: str, requested: dict, member_opts: dict, learning_rates: li
             signal.signal(s, h)
     st = status.status(paths.root)
     b = st["best"]
-    print(f"iterations completed {st['iterations_completed']}; best "
-          + ("none" if b is None else f"{b['eval_return']:.2f} (iteration {b['iteration']}, member {b['member']})"),
+    print(f"iterations completed {st['iterations_completed']} in {progress.clock(time.time() - started)}; best "
+          + ("none" if b is None else f"{b['eval_return']:.2f} (iteration {b['iteration']}, {status.describe(b)})"),
           flush=True)
     if interrupted:
         return 130
@@ -97,48 +106,29 @@ def _interrupt(signum, frame):
     raise KeyboardInterrupt
 
 
-def _watch(paths, procs, n, quiet, print_every) -> list[int]:
-    """Wait for the members, printing a progress line at most every ``print_every`` seconds."""
-    shown = pool.last_selected(paths)
-    printed, last_print = None, 0.0
-    while True:
-        codes = [p.poll() for p in procs]
-        if any(c not in (None, 0) for c in codes) and any(c is None for c in codes):
-            bad = next(m for m, c in enumerate(codes) if c not in (None, 0))
-            print(f"member {bad} exited with {codes[bad]}: {_why(paths, bad)}; stopping the others",
-                  file=sys.stderr, flush=True)
-            return _stop_all(procs, signal.SIGTERM, keep=codes)
-        nxt = shown + 1
-        while pool.read_selected(paths, nxt) is not None:
-            shown, nxt = nxt, nxt + 1
-        now = time.monotonic()
-        done = all(c is not None for c in codes)
-        if not quiet and shown >= 1 and shown != printed and (done or now - last_print >= print_every):
-            print(_progress_line(paths, shown, n), flush=True)
-            printed, last_print = shown, now
-        if done:
-            return codes
-        time.sleep(0.2)
-
-
-def _progress_line(paths, i, n) -> str:
-    sel = pool.read_selected(paths, i) or {}
-    best = None
-    try:
-        best = pool.fsutil.read_json(paths.best_json)
-    except (OSError, ValueError):
-        pass
-    parts = [f"iter {i:>5}  selected m{sel.get('member')} {_f(sel.get('eval_return'))}"]
-    if isinstance(best, dict):
-        parts.append(f"best {_f(best.get('eval_return'))} (iter {best.get('iteration')})")
-    ms = []
-    for m in status.members(paths, n):
-        ms.append(f"m{m['member']} {m['state']} {_f(m.get('last_return'))}")
-    return "  |  ".join([*parts, "  ".join(ms)])
-
-
-def _f(x) -> str:
-    return "-" if not isinstance(x, (int, float)) else f"{x:.2f}"
+def _watch(paths, procs, quiet, interval, started, target) -> list[int]:
+    """Wait for the members while showing progress; stop the others if one fails."""
+    tracker = progress.Tracker(paths.root, since=started, target=target)
+    display = contextlib.nullcontext() if quiet else progress.Display(sys.stdout, interval=interval)
+    next_poll = 0.0
+    with display:
+        while True:
+            codes = [p.poll() for p in procs]
+            done = all(c is not None for c in codes)
+            failed = any(c not in (None, 0) for c in codes) and not done
+            now = time.monotonic()
+            if not quiet and (now >= next_poll or done or failed):
+                display.update(tracker.poll())
+                next_poll = now + 0.5
+            if failed or done:
+                break
+            time.sleep(0.1)
+    if failed:
+        bad = next(m for m, c in enumerate(codes) if c not in (None, 0))
+        print(f"member {bad} exited with {codes[bad]}: {_why(paths, bad)}; stopping the others",
+              file=sys.stderr, flush=True)
+        return _stop_all(procs, signal.SIGTERM, keep=codes)
+    return codes
 
 
 def _stop_all(procs, sig, keep=None, grace: float = 30.0) -> list[int]:

@@ -10,6 +10,7 @@ the same deposit as the lost attempt would have.
 from __future__ import annotations
 
 import dataclasses
+import errno
 import logging
 import os
 import signal
@@ -25,7 +26,11 @@ from .errors import Stopped, UsageError
 
 log = logging.getLogger("rl_pool")
 
-EXIT_OK, EXIT_FAILED, EXIT_BARRIER = 0, 1, 3  # bad input (exit 2) is a UsageError for cli.main
+#: Exit codes of ``rl-pool train``; bad input (exit 2) is a UsageError for cli.main. EXIT_DISK: a
+#: write failed for want of space or a writable disk (full, over quota, read-only, I/O error):
+#: nothing half written is visible, and running the member again once that is fixed resumes.
+EXIT_OK, EXIT_FAILED, EXIT_BARRIER, EXIT_DISK = 0, 1, 3, 4
+DISK_ERRORS = frozenset({errno.ENOSPC, errno.EDQUOT, errno.EROFS, errno.EIO})
 
 
 _stopping = False
@@ -94,13 +99,24 @@ def _check_not_running(paths: pool.Paths, member: int, stale_after: float) -> No
 
 
 def run(pool_dir: str, requested: dict, mc: MemberConfig, quiet: bool = False) -> int:
-    """Run member ``mc.member`` until the pool's iteration ``mc.iterations`` is selected."""
+    """Run member ``mc.member`` until the pool's iteration ``mc.iterations`` is selected.
+
+    Returns an ``EXIT_*`` code (signals: 128 + the signal); bad input raises UsageError.
+    """
+    # A log line that cannot be written (full disk) must not print a traceback: the member
+    # says what went wrong itself, in one line (see _disk_error).
+    logging.raiseExceptions = False
     paths = pool.Paths(pool_dir)
-    check_arguments(paths, requested, [mc])
-    cfg = pool.open_pool(paths, requested, make_initial)
     me = mc.member
-    _check_not_running(paths, me, mc.heartbeat_timeout)
-    _setup_logging(paths, me, quiet)
+    try:
+        check_arguments(paths, requested, [mc])
+        cfg = pool.open_pool(paths, requested, make_initial)
+        _check_not_running(paths, me, mc.heartbeat_timeout)
+        _setup_logging(paths, me, quiet)
+    except OSError as exc:
+        if exc.errno in DISK_ERRORS:
+            return _disk_error(paths, me, None, exc, quiet)
+        raise
 
     last = pool.last_selected(paths)
     # A killed writer's temp files sit where the pool was when it died: near the last selection.
@@ -129,6 +145,8 @@ def run(pool_dir: str, requested: dict, mc: MemberConfig, quiet: bool = False) -
         hb.stop("failed", error=str(exc))
         raise
     except BaseException as exc:
+        if isinstance(exc, OSError) and exc.errno in DISK_ERRORS:
+            return _disk_error(paths, me, hb, exc, quiet)
         tb = traceback.format_exc()
         log.error("member failed:\n%s", tb)
         hb.stop("failed", error=f"{type(exc).__name__}: {exc}", traceback=tb[-4000:])
@@ -141,6 +159,39 @@ def run(pool_dir: str, requested: dict, mc: MemberConfig, quiet: bool = False) -
     hb.stop("finished")
     log.info("done: iteration %d selected", mc.iterations)
     return EXIT_OK
+
+
+def disk_error_line(member: int, exc: OSError, root: str) -> str:
+    """The one line a member stops with when it cannot write, e.g.
+    ``member 1 stopped: No space left on device [ENOSPC] writing iterations/000003/member-001.npz;
+    free space (or make the pool writable) and run it again to resume``."""
+    where = exc.filename
+    if isinstance(where, (str, bytes, os.PathLike)):
+        where = os.fsdecode(where)
+        rel = os.path.relpath(where, root)
+        where = where if rel.startswith("..") else rel
+    code = errno.errorcode.get(exc.errno, str(exc.errno))
+    verb = "at" if exc.errno == errno.EIO else "writing"  # EIO may come from a read
+    return (f"member {member} stopped: {exc.strerror or exc} [{code}]"
+            + (f" {verb} {where}" if where else "")
+            + "; free space (or make the pool writable) and run it again to resume")
+
+
+def _disk_error(paths: pool.Paths, member: int, hb: pool.Heartbeat | None, exc: OSError, quiet: bool) -> int:
+    """Stop with one line on stderr, in the log and in the heartbeat (each only if it can still be
+    written). Every file was written whole or not at all, so a restart resumes exactly."""
+    line = disk_error_line(member, exc, paths.root)
+    if log.handlers:  # none yet if the log could not be opened (and then not Python's last-resort one)
+        log.error("%s", line)  # on stderr too, unless quiet
+    if hb is not None:
+        hb.stop("failed", error=line)  # a heartbeat that cannot be written is skipped
+    if quiet or not any(type(h) is logging.StreamHandler for h in log.handlers):
+        try:
+            sys.stderr.write(f"rl-pool: {line}\n")
+            sys.stderr.flush()
+        except OSError:
+            pass  # stderr on the same full disk
+    return EXIT_DISK
 
 
 def _loop(paths: pool.Paths, cfg: PoolConfig, mc: MemberConfig, hb: pool.Heartbeat, first: int) -> None:
@@ -183,7 +234,8 @@ def _loop(paths: pool.Paths, cfg: PoolConfig, mc: MemberConfig, hb: pool.Heartbe
                 # The parent competes on the same episodes; every member scores it, so the
                 # selection does not depend on any one member's deposit being there.
                 pe = trainer.evaluate(start, env_list, cfg, i)
-                parent = {"parent_eval_return": pe.mean, "parent_sha256": prev["agent_sha256"],
+                parent = {"parent_eval_return": pe.mean, "parent_eval_score": pe.score,
+                          "parent_sha256": prev["agent_sha256"],
                           "parent_eval_seconds": pe.seconds, "parent_eval_steps": pe.steps}
             metrics = ev.summary() | parent | {
                 "learning_rate": lr,

@@ -27,14 +27,15 @@ import math
 import os
 import re
 import socket
+import stat
 import threading
 import time
 from dataclasses import dataclass
 
 from . import fsutil
-from .agent import Agent
+from .agent import Agent, max_file_bytes
 from .config import PROTOCOL, OldProtocol, PoolConfig
-from .errors import AgentFileError, UsageError
+from .errors import AgentFileError, UnsafeFile, UsageError
 
 log = logging.getLogger("rl_pool")
 
@@ -91,6 +92,14 @@ class Paths:
     def rel(self, path: str) -> str:
         return os.path.relpath(path, self.root)
 
+    def read_json(self, path: str, missing_retries: int = 0):
+        """A JSON file of this pool, read bounded and never through a link (:mod:`rl_pool.fsutil`)."""
+        return fsutil.read_json(path, missing_retries=missing_retries, root=self.root)
+
+    def read_bytes(self, path: str, cap: int = fsutil.AGENT_MAX_BYTES, missing_retries: int = 0) -> bytes:
+        """A file of this pool (an agent), read bounded and never through a link."""
+        return fsutil.read_bytes(path, cap, missing_retries=missing_retries, root=self.root)
+
     def resolve(self, rel: str) -> str:
         """A path named inside a pool file, refused if it points outside the pool."""
         full = os.path.normpath(os.path.join(self.root, rel))
@@ -107,7 +116,7 @@ def read_config(paths: Paths) -> PoolConfig:
     if not os.path.exists(paths.pool_json):
         raise UsageError(f"{paths.root} is not an rl-pool pool (no pool.json)")
     try:
-        return PoolConfig.from_json(fsutil.read_json(paths.pool_json)).validate()
+        return PoolConfig.from_json(paths.read_json(paths.pool_json)).validate()
     except OldProtocol as exc:
         raise UsageError(
             f"{paths.root} was made by another rl-pool version (pool protocol {exc.protocol!r}, this one "
@@ -116,7 +125,8 @@ def read_config(paths: Paths) -> PoolConfig:
     except UsageError as exc:
         raise UsageError(f"{paths.pool_json} holds invalid settings ({exc})") from None
     except (OSError, ValueError, TypeError) as exc:
-        raise UsageError(f"{paths.pool_json} is not a valid rl-pool pool config ({exc})") from None
+        why = exc.strerror if isinstance(exc, OSError) and exc.strerror else exc
+        raise UsageError(f"{paths.pool_json} is not a valid rl-pool pool config ({why})") from None
 
 
 def open_pool(paths: Paths, requested: dict, initial_agent, lock_timeout: float = 60.0) -> PoolConfig:
@@ -169,27 +179,48 @@ def _ensure_initial(paths: Paths, cfg: PoolConfig, initial_agent) -> None:
     agent, _ = initial_agent(cfg)
     data = agent.to_bytes()
     fsutil.create_exclusive(paths.initial(), data)
+    on_disk = paths.read_bytes(paths.initial(), max_file_bytes(agent.meta))
     doc = {"iteration": 0, "member": None, "eval_return": None, "initial": True,
-           "agent": paths.rel(paths.initial()), "agent_sha256": sha256(fsutil.read_bytes(paths.initial())),
+           "agent": paths.rel(paths.initial()), "agent_sha256": sha256(on_disk),
            "considered": [], "skipped": []}
     fsutil.create_exclusive(paths.selected(0), fsutil.dumps(doc))
 
 
 # ---------------------------------------------------------------- iterations
+_warned: set = set()
+
+
+def _warn_once(key, msg: str, *args) -> None:
+    """Log a refused file once per process, not on every barrier poll."""
+    if key not in _warned:
+        if len(_warned) > 10_000:
+            _warned.clear()
+        _warned.add(key)
+        log.warning(msg, *args)
+
+
 def iterations_on_disk(paths: Paths) -> list[int]:
-    return sorted(int(n) for n in fsutil.listdir(paths.iterations) if ITER_RE.match(n))
+    """The iteration directories (real directories only: a symbolic link named like one is ignored)."""
+    return sorted(int(n) for n in fsutil.subdirs(paths.iterations, root=paths.root) if ITER_RE.match(n))
 
 
 def read_selected(paths: Paths, i: int) -> dict | None:
     """``selected.json`` of iteration ``i`` or None if not (yet, or readably) there."""
     try:
-        doc = fsutil.read_json(paths.selected(i))
+        doc = paths.read_json(paths.selected(i))
     except FileNotFoundError:
         return None
     except (OSError, ValueError) as exc:
-        log.warning("unreadable %s: %s", paths.selected(i), exc)
+        _warn_once((paths.selected(i), str(exc)), "unreadable %s: %s", paths.selected(i), _why(exc))
         return None
     return doc if isinstance(doc, dict) and doc.get("iteration") == i else None
+
+
+def _why(exc: Exception) -> str:
+    """A refused or unreadable file's reason, for logs and ``skipped`` entries."""
+    if isinstance(exc, OSError) and exc.strerror:
+        return exc.strerror
+    return f"{type(exc).__name__}: {exc}" if str(exc) else type(exc).__name__
 
 
 def last_selected(paths: Paths) -> int:
@@ -200,14 +231,19 @@ def last_selected(paths: Paths) -> int:
     return -1
 
 
-def load_selected_agent(paths: Paths, i: int, sel: dict | None = None) -> Agent:
+def load_selected_agent(paths: Paths, i: int, sel: dict | None = None, like: Agent | None = None) -> Agent:
     """The agent selected in iteration ``i``, checked against the hash in ``selected.json``
-    (``sel``: that file's content, if the caller has already read it)."""
+    (``sel``: that file's content, if the caller has already read it; ``like``: an agent of
+    this pool, whose shapes cap the file's size)."""
     sel = sel if sel is not None else read_selected(paths, i)
     if sel is None:
         raise RuntimeError(f"iteration {i} has no selection")
     path = paths.resolve(sel["agent"])
-    data = fsutil.read_bytes(path)
+    cap = max_file_bytes(like.meta) if like is not None else fsutil.AGENT_MAX_BYTES
+    try:
+        data = paths.read_bytes(path, cap)
+    except UnsafeFile as exc:
+        raise RuntimeError(f"{path} (selected in iteration {i}) is refused: {exc.strerror}") from None
     if sha256(data) != sel.get("agent_sha256"):
         raise RuntimeError(f"{path} does not match the hash recorded in {paths.selected(i)}")
     return Agent.from_bytes(data, source=path)
@@ -227,8 +263,14 @@ def deposit(paths: Paths, i: int, m: int, agent: Agent, metrics: dict) -> dict:
 
 def present(paths: Paths, i: int, pool_size: int) -> set[int]:
     """Members whose deposit marker exists; anything else in the directory is ignored."""
+    try:
+        names = fsutil.listdir(paths.iteration(i), root=paths.root)
+    except UnsafeFile as exc:
+        # A symlinked iteration directory counts nothing: no deposit is read through it.
+        _warn_once((paths.iteration(i), "listing"), "iteration %d: %s", i, _why(exc))
+        return set()
     out = set()
-    for name in fsutil.listdir(paths.iteration(i)):
+    for name in names:
         mm = DEPOSIT_RE.match(name)
         # exact names only: "member-0001.json" is a stray, not member 1
         if mm and int(mm.group(1)) < pool_size and name == member_name(int(mm.group(1))) + ".json":
@@ -244,7 +286,9 @@ def read_deposit(paths: Paths, i: int, m: int, like: Agent | None = None):
     pickle, holds finite arrays of the right shapes, and fits the pool's env.
     """
     try:
-        doc = fsutil.read_json(paths.deposit_json(i, m), missing_retries=5)
+        doc = paths.read_json(paths.deposit_json(i, m), missing_retries=5)
+    except UnsafeFile as exc:
+        raise ValueError(f"metrics refused ({exc.strerror})") from None
     except (OSError, ValueError) as exc:
         raise ValueError(f"metrics unreadable ({type(exc).__name__})") from None
     if not isinstance(doc, dict):
@@ -254,8 +298,11 @@ def read_deposit(paths: Paths, i: int, m: int, like: Agent | None = None):
     ret = doc.get("eval_return")
     if isinstance(ret, bool) or not isinstance(ret, (int, float)) or not math.isfinite(ret):
         raise ValueError(f"eval_return is not a finite number ({ret!r})")
+    cap = max_file_bytes(like.meta) if like is not None else fsutil.AGENT_MAX_BYTES
     try:
-        data = fsutil.read_bytes(paths.deposit_npz(i, m), missing_retries=5)
+        data = paths.read_bytes(paths.deposit_npz(i, m), cap, missing_retries=5)
+    except UnsafeFile as exc:
+        raise ValueError(f"agent refused ({exc.strerror})") from None
     except OSError as exc:
         raise ValueError(f"agent unreadable ({exc.strerror or exc})") from None
     if sha256(data) != doc.get("agent_sha256"):
@@ -276,8 +323,9 @@ def choose(candidates: list[tuple[int, float]]) -> tuple[int, float]:
     return min(candidates, key=lambda c: (-c[1], c[0]))
 
 
-def parent_score(docs: list[dict], parent_sha: str) -> float | None:
-    """The parent's score on this iteration's evaluation episodes, as the valid deposits report it.
+def parent_score(docs: list[dict], parent_sha: str, shifted: bool = False) -> tuple[float, float] | None:
+    """``(env return, score)`` of the parent on this iteration's evaluation episodes, as the valid
+    deposits report it (``score`` is the shifted return when ``shifted``, else the return).
 
     Every member re-scores the agent it started from on the iteration's common
     evaluation seeds, so all honest reports agree; the lowest member's report
@@ -285,8 +333,9 @@ def parent_score(docs: list[dict], parent_sha: str) -> float | None:
     """
     for doc in docs:
         ret = doc.get("parent_eval_return")
-        if doc.get("parent_sha256") == parent_sha and _finite(ret):
-            return float(ret)
+        score = doc.get("parent_eval_score") if shifted else ret
+        if doc.get("parent_sha256") == parent_sha and _finite(ret) and _finite(score):
+            return float(ret), float(score)
     return None
 
 
@@ -299,6 +348,10 @@ def select(paths: Paths, i: int, cfg: PoolConfig, like: Agent, members: set[int]
     """The selection of iteration ``i`` (a pure function of its files and ``previous``, the
     selection of ``i - 1``).
 
+    Candidates are compared on their *score*: the mean evaluation return of the
+    objective the members train on, i.e. the env's return, or with
+    ``reward_shift`` taken off every step (``eval_score``) when the pool
+    shifts rewards; ``eval_return`` always records the env's own return.
     ``winner`` says why the agent won: ``branch`` (the best valid deposit;
     ties go to the lowest member), ``parent`` (with ``cfg.selection ==
     "parent"``: the agent the iteration started from, re-scored on the same
@@ -307,6 +360,7 @@ def select(paths: Paths, i: int, cfg: PoolConfig, like: Agent, members: set[int]
     best selected agent) or ``carried`` (no valid deposit: the parent carries over).
     A branch that ties with the parent wins: it has not lost ground.
     """
+    shifted = bool(cfg.reward_shift)
     considered, skipped, docs = [], [], []
     for m in range(cfg.pool_size):
         if m not in members:
@@ -314,51 +368,55 @@ def select(paths: Paths, i: int, cfg: PoolConfig, like: Agent, members: set[int]
             continue
         try:
             doc, _ = read_deposit(paths, i, m, like)
+            score = doc.get("eval_score") if shifted else doc["eval_return"]
+            if not _finite(score):
+                raise ValueError(f"eval_score is not a finite number ({score!r})")
         except ValueError as exc:
             skipped.append({"member": m, "reason": str(exc)})
             continue
         docs.append(doc)
-        considered.append({"member": m, "eval_return": float(doc["eval_return"]),
+        considered.append({"member": m, "eval_return": float(doc["eval_return"]), "score": float(score),
                            "agent_sha256": doc["agent_sha256"]})
-    out = {"iteration": i, "considered": [{"member": c["member"], "eval_return": c["eval_return"]}
+    out = {"iteration": i, "considered": [{k: c[k] for k in ("member", "eval_return", "score")}
                                           for c in considered],
            "skipped": skipped, "quorum_reason": reason,
            "parent": {"iteration": previous["iteration"], "member": previous.get("member"),
                       "agent_sha256": previous["agent_sha256"]}}
-    parent_ret = parent_score(docs, previous["agent_sha256"]) if cfg.selection == "parent" else None
-    out["parent"]["eval_return"] = parent_ret
-    keep_parent = {"member": None, "agent": previous["agent"], "agent_sha256": previous["agent_sha256"]}
+    parent = parent_score(docs, previous["agent_sha256"], shifted) if cfg.selection == "parent" else None
+    out["parent"] |= {"eval_return": parent and parent[0], "score": parent and parent[1]}
+    keep_parent = {"member": None, "agent": previous["agent"], "agent_sha256": previous["agent_sha256"],
+                   "eval_return": parent and parent[0], "score": parent and parent[1]}
     if considered:
-        m, ret = choose([(c["member"], c["eval_return"]) for c in considered])
-        if parent_ret is not None and parent_ret > ret:
-            out |= keep_parent | {"winner": "parent", "eval_return": parent_ret,
-                                  "best_branch": {"member": m, "eval_return": ret}}
+        top, _ = choose([(c["member"], c["score"]) for c in considered])
+        best = next(c for c in considered if c["member"] == top)
+        if parent is not None and parent[1] > best["score"]:
+            out |= keep_parent | {"winner": "parent",
+                                  "best_branch": {k: best[k] for k in ("member", "eval_return", "score")}}
         else:
-            sha = next(c["agent_sha256"] for c in considered if c["member"] == m)
-            out |= {"winner": "branch", "member": m, "eval_return": ret,
-                    "agent": paths.rel(paths.deposit_npz(i, m)), "agent_sha256": sha}
+            out |= {"winner": "branch", "member": best["member"], "eval_return": best["eval_return"],
+                    "score": best["score"], "agent": paths.rel(paths.deposit_npz(i, best["member"])),
+                    "agent_sha256": best["agent_sha256"]}
     else:
-        out |= keep_parent | {"winner": "carried", "eval_return": parent_ret,
-                              "carried_from": previous["iteration"]}
+        out |= keep_parent | {"winner": "carried", "carried_from": previous["iteration"]}
     return _track_best(out, previous, cfg.revert_after)
 
 
 def _track_best(out: dict, previous: dict, revert_after: int) -> dict:
-    """Carry the best selection so far (``best``) and the iterations since it (``since_best``)
-    from ``previous`` to ``out``; revert to the best after ``revert_after`` of them."""
+    """Carry the best selection so far (``best``, by score) and the iterations since it
+    (``since_best``) from ``previous`` to ``out``; revert to the best after ``revert_after`` of them."""
     best = previous.get("best")
-    ret = out.get("eval_return")
-    if ret is not None and (not isinstance(best, dict) or ret > best["eval_return"]):
-        out["best"] = {"iteration": out["iteration"], "eval_return": ret, "agent": out["agent"],
-                       "agent_sha256": out["agent_sha256"]}
+    score = out.get("score")
+    if score is not None and (not isinstance(best, dict) or score > best["score"]):
+        out["best"] = {"iteration": out["iteration"], "eval_return": out["eval_return"], "score": score,
+                       "agent": out["agent"], "agent_sha256": out["agent_sha256"]}
         out["since_best"] = 0
         return out
     out["best"] = best if isinstance(best, dict) else None
     out["since_best"] = int(previous.get("since_best") or 0) + 1
     if revert_after and out["best"] is not None and out["since_best"] >= revert_after \
             and out["agent_sha256"] != best["agent_sha256"]:
-        out["instead"] = {k: out.get(k) for k in ("winner", "member", "eval_return")}
-        out |= {"winner": "revert", "member": None, "eval_return": best["eval_return"],
+        out["instead"] = {k: out.get(k) for k in ("winner", "member", "eval_return", "score")}
+        out |= {"winner": "revert", "member": None, "eval_return": best["eval_return"], "score": best["score"],
                 "agent": best["agent"], "agent_sha256": best["agent_sha256"],
                 "reverted_to": best["iteration"], "since_best": 0}
     return out
@@ -368,17 +426,26 @@ def publish_selection(paths: Paths, selection: dict, by: int) -> tuple[dict, boo
     """Create ``selected.json`` unless it exists; return what is on disk and whether we wrote it."""
     i = selection["iteration"]
     doc = selection | {"selected_by": by, "time": time.time()}
-    created = fsutil.create_exclusive(paths.selected(i), fsutil.dumps(doc))
-    if created:
-        return doc, True
-    # Someone else decided first: adopt their decision, never our own.
-    try:
-        on_disk = fsutil.read_json(paths.selected(i), missing_retries=8)
-    except (OSError, ValueError) as exc:
-        raise RuntimeError(f"{paths.selected(i)} exists but cannot be read: {exc}") from None
-    if not isinstance(on_disk, dict) or on_disk.get("iteration") != i:
-        raise RuntimeError(f"{paths.selected(i)} is not a selection of iteration {i}")
-    return on_disk, False
+    for _ in range(3):
+        if fsutil.create_exclusive(paths.selected(i), fsutil.dumps(doc)):
+            return doc, True
+        # Someone else decided first: adopt their decision, never our own.
+        try:
+            on_disk = paths.read_json(paths.selected(i), missing_retries=8)
+        except UnsafeFile as exc:
+            # Not a file any member writes (a FIFO, a directory, a link, a huge file): it holds
+            # the name but decides nothing. Clear the name and create the selection.
+            if exc.ident is None:
+                raise RuntimeError(f"{paths.selected(i)} is refused: {exc.strerror}") from None
+            log.warning("iteration %d: removing %s (%s)", i, paths.selected(i), exc.strerror)
+            fsutil.set_aside(paths.selected(i), exc.ident, root=paths.root)
+            continue
+        except (OSError, ValueError) as exc:
+            raise RuntimeError(f"{paths.selected(i)} exists but cannot be read: {exc}") from None
+        if not isinstance(on_disk, dict) or on_disk.get("iteration") != i:
+            raise RuntimeError(f"{paths.selected(i)} is not a selection of iteration {i}")
+        return on_disk, False
+    raise RuntimeError(f"{paths.selected(i)} keeps being occupied by files that are not selections")
 
 
 def update_best(paths: Paths, selection: dict | None) -> bool:
@@ -391,14 +458,23 @@ def update_best(paths: Paths, selection: dict | None) -> bool:
     if ret is None:
         return False
     try:
-        best = fsutil.read_json(paths.best_json)
+        best = paths.read_json(paths.best_json)
     except (OSError, ValueError):
         best = None
     # Ties keep the earlier iteration, as status's best does.
     if isinstance(best, dict) and isinstance(best.get("eval_return"), (int, float)) and \
             (best["eval_return"], -best.get("iteration", 0)) >= (ret, -selection["iteration"]):
         return False
-    data = fsutil.read_bytes(paths.resolve(selection["agent"]))
+    data = paths.read_bytes(paths.resolve(selection["agent"]))
+    for target in (paths.best_npz, paths.best_json):
+        # A rename replaces a FIFO, a link or a file, not a directory: clear one off the name.
+        try:
+            st = os.lstat(target)
+        except OSError:
+            continue
+        if stat.S_ISDIR(st.st_mode):
+            log.warning("removing the directory at %s", target)
+            fsutil.set_aside(target, (st.st_dev, st.st_ino), root=paths.root)
     fsutil.atomic_write(paths.best_npz, data)
     fsutil.write_json(paths.best_json, {"iteration": selection["iteration"], "member": selection["member"],
                                         "eval_return": ret, "agent": selection["agent"]})
@@ -457,7 +533,7 @@ def pid_alive(pid: int) -> bool:
 
 def read_heartbeat(paths: Paths, m: int) -> dict | None:
     try:
-        doc = fsutil.read_json(paths.heartbeat(m))
+        doc = paths.read_json(paths.heartbeat(m))
     except (OSError, ValueError):
         return None
     return doc if isinstance(doc, dict) else None

@@ -1,11 +1,14 @@
-"""Reading a pool for people: history, best, members (used by status, plot, results export)."""
+"""Reading a pool for people: history, best, members (used by status, plot, progress, compare)."""
 
 from __future__ import annotations
 
 import os
+import re
 import time
 
 from . import fsutil, pool
+
+_AGENT_RE = re.compile(r"^iterations/(\d{6,})/(?:member-(\d{3,})\.npz|initial\.npz)$")
 
 
 def _read(path):
@@ -20,51 +23,102 @@ def _num(x):
     return float(x) if isinstance(x, (int, float)) and not isinstance(x, bool) else None
 
 
-def history(paths: pool.Paths, pool_size: int) -> list[dict]:
-    """One row per selected iteration (1, 2, ...) with each member's deposit metrics."""
+def agent_from(sel: dict) -> dict | None:
+    """Where a selection's agent was made: ``{"iteration", "member"}`` (member None: the initial agent).
+
+    A branch win names its own deposit; a parent win or a revert names an older
+    selection's file, so this says whose training the pool is running on.
+    """
+    mm = _AGENT_RE.match(str(sel.get("agent", "")))
+    if mm is None:
+        return None
+    return {"iteration": int(mm.group(1)), "member": None if mm.group(2) is None else int(mm.group(2))}
+
+
+def describe(row: dict, origin: bool = True) -> str:
+    """Who won a history row (or ``best``): ``member 1``, ``the parent``, ``a revert to iteration 7``...
+
+    With ``origin``, a parent or revert also says whose agent it is (member and iteration that trained it).
+    """
+    win = row.get("winner", "branch")
+    member = row.get("selected_member", row.get("member"))
+    if win == "branch":
+        return f"member {member}"
+    origin = row.get("agent_from") if origin else None
+    made = ""
+    if isinstance(origin, dict):
+        made = (" (the initial agent)" if origin.get("member") is None else
+                f" (member {origin['member']}'s agent of iteration {origin['iteration']})")
+    if win == "revert":
+        return f"a revert to iteration {row.get('reverted_to', '?')}{made}"
+    if win == "carried":
+        return "the parent, carried (no valid deposit)" + made
+    return "the parent" + made
+
+
+def short_winner(row: dict) -> str:
+    """``m1``, ``parent``, ``revert``, ``carried``: for narrow columns."""
+    win = row.get("winner", "branch")
+    return f"m{row.get('selected_member', row.get('member'))}" if win == "branch" else str(win)
+
+
+def _int(x):
+    return int(x) if isinstance(x, int) and not isinstance(x, bool) and x >= 0 else None
+
+
+def history(paths: pool.Paths, pool_size: int, first: int = 1) -> list[dict]:
+    """One row per selected iteration (``first``, ``first + 1``, ...) with each member's deposit metrics."""
     rows = []
     for i in pool.iterations_on_disk(paths):
-        if i == 0:
+        if i < max(1, first):
             continue
         sel = pool.read_selected(paths, i)
-        if sel is None:
-            continue
-        members = []
-        for m in range(pool_size):
-            doc = _read(paths.deposit_json(i, m))
-            if doc is None:
-                continue
-            wait = _read(paths.wait_json(i, m)) or {}
-            members.append({
-                "member": m,
-                "eval_return": _num(doc.get("eval_return")),
-                "learning_rate": _num(doc.get("learning_rate")),
-                "train_steps": doc.get("train_steps"),
-                "eval_steps": doc.get("eval_steps"),
-                "parent_eval_steps": doc.get("parent_eval_steps"),
-                "train_seconds": _num(doc.get("train_seconds")),
-                "eval_seconds": _num(doc.get("eval_seconds")),
-                "wait_seconds": _num(wait.get("wait_seconds")),
-                "time": _num(doc.get("time")),
-            })
-        rows.append({
-            "iteration": i,
-            "selected_member": sel.get("member"),
-            "winner": sel.get("winner", "branch"),
-            "eval_return": _num(sel.get("eval_return")),
-            "quorum_reason": sel.get("quorum_reason"),
-            "skipped": sel.get("skipped", []),
-            "time": _num(sel.get("time")),
-            "members": members,
-        })
+        if sel is not None:
+            rows.append(history_row(paths, sel, pool_size))
     return rows
+
+
+def history_row(paths: pool.Paths, sel: dict, pool_size: int) -> dict:
+    """The history row of one selection: the winner and every member's deposit metrics."""
+    i = sel["iteration"]
+    members = []
+    for m in range(pool_size):
+        doc = _read(paths.deposit_json(i, m))
+        if doc is None:
+            continue
+        wait = _read(paths.wait_json(i, m)) or {}
+        members.append({
+            "member": m,
+            "eval_return": _num(doc.get("eval_return")),
+            "learning_rate": _num(doc.get("learning_rate")),
+            "train_steps": _int(doc.get("train_steps")),
+            "eval_steps": _int(doc.get("eval_steps")),
+            "parent_eval_steps": _int(doc.get("parent_eval_steps")),
+            "train_seconds": _num(doc.get("train_seconds")),
+            "eval_seconds": _num(doc.get("eval_seconds")),
+            "wait_seconds": _num(wait.get("wait_seconds")),
+            "time": _num(doc.get("time")),
+        })
+    return {
+        "iteration": i,
+        "selected_member": sel.get("member"),
+        "winner": sel.get("winner", "branch"),
+        "agent_from": agent_from(sel),
+        "reverted_to": sel.get("reverted_to"),
+        "eval_return": _num(sel.get("eval_return")),
+        "quorum_reason": sel.get("quorum_reason"),
+        "skipped": sel.get("skipped", []),
+        "time": _num(sel.get("time")),
+        "members": members,
+    }
 
 
 def best_of(rows: list[dict]) -> dict | None:
     best = None
     for r in rows:
         if r["eval_return"] is not None and (best is None or r["eval_return"] > best["eval_return"]):
-            best = {"iteration": r["iteration"], "member": r["selected_member"], "eval_return": r["eval_return"]}
+            best = {"iteration": r["iteration"], "member": r["selected_member"], "eval_return": r["eval_return"],
+                    "winner": r.get("winner", "branch"), "agent_from": r.get("agent_from")}
     return best
 
 
@@ -87,7 +141,7 @@ def members(paths: pool.Paths, pool_size: int) -> list[dict]:
         out.append({"member": m, "state": state, "iteration": hb.get("iteration"),
                     "pid": hb.get("pid"), "host": hb.get("host"), "heartbeat_age": age,
                     "learning_rate": hb.get("learning_rate"), "last_return": hb.get("last_return"),
-                    "error": hb.get("error")})
+                    "target": hb.get("target"), "error": hb.get("error")})
     return out
 
 
@@ -95,7 +149,8 @@ def status(pool_dir: str) -> dict:
     paths = pool.Paths(pool_dir)
     cfg = pool.read_config(paths)
     rows = history(paths, cfg.pool_size)
-    created = _read(paths.pool_json).get("created")
+    doc = _read(paths.pool_json) or {}
+    created = _num(doc.get("created"))
     for r in rows:
         r["elapsed_seconds"] = (r["time"] - created) if (r["time"] and created) else None
     return {
@@ -103,11 +158,39 @@ def status(pool_dir: str) -> dict:
         "pool_size": cfg.pool_size,
         "env": cfg.env,
         "config": cfg.to_json(),
+        "created": created,
+        "versions": recorded_versions(doc),
         "iterations_completed": rows[-1]["iteration"] if rows else 0,
         "best": best_of(rows),
         "members": members(paths, cfg.pool_size),
         "history": rows,
     }
+
+
+def recorded_versions(doc: dict) -> dict | None:
+    """``pool.json``'s ``versions`` (python, numpy, jax, ... at creation), or None if it has none."""
+    v = doc.get("versions")
+    if not isinstance(v, dict):
+        return None
+    return {str(k): (x if isinstance(x, str) or x is None else str(x)) for k, x in list(v.items())[:32]}
+
+
+def curve(st: dict) -> list[dict]:
+    """Per iteration: selected return, best so far, elapsed wall seconds and env steps of all members so far.
+
+    Env steps count training, evaluation and the parent's re-scoring: every
+    step any member simulated.
+    """
+    out, steps, best = [], 0, None
+    for r in st["history"]:
+        steps += sum((x.get("train_steps") or 0) + (x.get("eval_steps") or 0) + (x.get("parent_eval_steps") or 0)
+                     for x in r["members"])
+        if r["eval_return"] is not None:
+            best = r["eval_return"] if best is None else max(best, r["eval_return"])
+        out.append({"iteration": r["iteration"], "selected_member": r["selected_member"], "winner": r["winner"],
+                    "eval_return": r["eval_return"], "best_so_far": best,
+                    "elapsed_seconds": r["elapsed_seconds"], "env_steps": steps})
+    return out
 
 
 def write_csv(st: dict, out: str) -> str:
@@ -119,18 +202,13 @@ def write_csv(st: dict, out: str) -> str:
             "env_steps"]
     for m in range(n):
         cols += [f"member{m}_eval_return", f"member{m}_learning_rate"]
-    steps, best = 0, None
     with open(out, "w", newline="") as fh:
         w = csv.writer(fh)
         w.writerow(cols)
-        for r in st["history"]:
+        for r, c in zip(st["history"], curve(st), strict=True):
             by = {x["member"]: x for x in r["members"]}
-            steps += sum((x.get("train_steps") or 0) + (x.get("eval_steps") or 0) + (x.get("parent_eval_steps") or 0)
-                         for x in r["members"])
-            if r["eval_return"] is not None:
-                best = r["eval_return"] if best is None else max(best, r["eval_return"])
-            row = [r["iteration"], r["selected_member"], r["winner"], r["eval_return"], best,
-                   None if r["elapsed_seconds"] is None else round(r["elapsed_seconds"], 3), steps]
+            row = [r["iteration"], r["selected_member"], r["winner"], r["eval_return"], c["best_so_far"],
+                   None if r["elapsed_seconds"] is None else round(r["elapsed_seconds"], 3), c["env_steps"]]
             for m in range(n):
                 x = by.get(m, {})
                 row += [x.get("eval_return"), x.get("learning_rate")]
@@ -144,7 +222,15 @@ def format_table(st: dict, last: int = 10) -> str:
              f"iterations completed {st['iterations_completed']}"]
     b = st["best"]
     lines.append("best: none yet" if b is None else
-                 f"best: {b['eval_return']:.2f} (iteration {b['iteration']}, member {b['member']})")
+                 f"best: {b['eval_return']:.2f} (iteration {b['iteration']}, {describe(b)})")
+    v = st.get("versions")
+    if v:
+        from .versions import differences, format_versions
+
+        lines.append(f"versions: {format_versions(v)}")
+        diff = differences(v)
+        if diff:
+            lines.append("  installed here: " + format_versions({k: now for k, (_, now) in diff.items()}))
     lines.append("")
     lines.append(f"{'member':>6}  {'state':<10} {'iter':>5}  {'lr':>9}  {'last return':>11}  {'heartbeat':>9}")
     for m in st["members"]:

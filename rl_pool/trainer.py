@@ -73,16 +73,25 @@ class EvalResult:
     returns: list[float]
     steps: int
     seconds: float
+    lengths: list[int]
+    shift: float = 0.0
 
     @property
     def mean(self) -> float:
         return float(np.mean(self.returns))
 
+    @property
+    def score(self) -> float:
+        """What selection compares: the mean return of the *training* objective, i.e. with
+        ``reward_shift`` taken off every step (the env's own return when the shift is 0)."""
+        return float(np.mean(np.asarray(self.returns) - self.shift * np.asarray(self.lengths)))
+
     def summary(self) -> dict:
         r = np.asarray(self.returns)
         return {"eval_return": float(r.mean()), "eval_std": float(r.std()),
                 "eval_min": float(r.min()), "eval_max": float(r.max()),
-                "eval_returns": [float(x) for x in r]}
+                "eval_returns": [float(x) for x in r], "eval_score": self.score,
+                "eval_lengths": [int(n) for n in self.lengths]}
 
 
 def train(agent: Agent, envs, cfg: PoolConfig, lr: float, member: int, iteration: int) -> TrainResult:
@@ -119,4 +128,5 @@ def evaluate(agent: Agent, envs, cfg: PoolConfig, iteration: int) -> EvalResult:
     batch = run_episodes(envs, agent.params, agent.spec, agent.norm, agent.low, agent.high, seeds,
                          agent.meta.max_episode_steps, rng,
                          deterministic=cfg.eval_mode == "mean", record=False)
-    return EvalResult([float(r) for r in batch.returns], batch.steps, time.perf_counter() - t0)
+    return EvalResult([float(r) for r in batch.returns], batch.steps, time.perf_counter() - t0,
+                      [int(n) for n in batch.lengths], cfg.reward_shift)

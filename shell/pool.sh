@@ -1,16 +1,21 @@
 #!/usr/bin/env bash
 # Launch a local pool: N `rl-pool train` processes on one pool directory, each
-# with its own learning rate from a bash array, each logging to its own file.
-# Ctrl-C (or SIGTERM) stops every member cleanly; running this again resumes
-# the pool where it is.
+# with its own learning rate from a bash array, each logging to its own file,
+# while `rl-pool status --watch` shows progress (redrawn in place on a
+# terminal, a plain line every PROGRESS_INTERVAL seconds in a log). Ctrl-C (or
+# SIGTERM) stops every member cleanly; if one member fails the others are
+# stopped too; running this again resumes the pool where it is.
 #
 #   POOL_DIR=runs/swimmer N=2 BASE_LR=0.1 ./shell/pool.sh [extra rl-pool train options]
 #   N=4 LEARNING_RATES="0.01 0.1 0.1 0.2" ./shell/pool.sh ...
+#   PROGRESS=0 ./shell/pool.sh ...     # no progress display (members' logs only)
 set -uo pipefail
 POOL_DIR="${POOL_DIR:-runs/swimmer-v5}"
 N="${N:-2}"
 BASE_LR="${BASE_LR:-0.1}"
 ITERATIONS="${ITERATIONS:-500}"
+PROGRESS="${PROGRESS:-1}"
+PROGRESS_INTERVAL="${PROGRESS_INTERVAL:-}"   # default: 0.5 s redraws on a terminal, 10 s between lines otherwise
 # rl-pool: $RL_POOL, else this repo's .venv, else whatever is on PATH
 HERE="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
 RL_POOL="${RL_POOL:-}"
@@ -36,41 +41,63 @@ if [ "${#LRS[@]}" -ne "$N" ]; then
     exit 2
 fi
 mkdir -p "$POOL_DIR/logs"
+out_of() { echo "$POOL_DIR/logs/member-$(printf %03d "$1").out"; }
 pids=()
+watcher=""
 stopped=0
-stop() {
-    stopped=1
-    echo "pool.sh: stopping ${#pids[@]} members..." >&2
+stop_members() {
     # SIGTERM, not SIGINT: bash starts background jobs with SIGINT ignored, so a member
     # that has not yet installed its handler would miss an INT; it stops cleanly on TERM.
     kill -TERM "${pids[@]}" 2>/dev/null
 }
-trap stop INT TERM
+on_signal() {
+    stopped=1
+    [ -n "$watcher" ] || echo "pool.sh: stopping ${#pids[@]} members..." >&2
+    stop_members
+}
+trap on_signal INT TERM
 for ((m = 0; m < N; m++)); do
     "$RL_POOL" train --pool-dir "$POOL_DIR" --pool-size "$N" --member "$m" \
         --learning-rate "${LRS[$m]}" --iterations "$ITERATIONS" --quiet "$@" \
-        >> "$POOL_DIR/logs/member-$(printf %03d "$m").out" 2>&1 &
+        >> "$(out_of "$m")" 2>&1 &
     pids+=($!)
 done
 echo "pool.sh: $N members on $POOL_DIR (learning rates ${LRS[*]}); logs in $POOL_DIR/logs/" >&2
-echo "pool.sh: watch with: rl-pool status $POOL_DIR" >&2
-status=0
-for ((m = 0; m < N; m++)); do
-    # wait returns early when a trapped signal arrives; wait again for the member itself
-    while true; do
-        wait "${pids[$m]}"; rc=$?
-        kill -0 "${pids[$m]}" 2>/dev/null || break
+if [ "$PROGRESS" != 0 ]; then
+    "$RL_POOL" status "$POOL_DIR" --watch ${PROGRESS_INTERVAL:+--interval "$PROGRESS_INTERVAL"} &
+    watcher=$!
+else
+    echo "pool.sh: watch with: rl-pool status $POOL_DIR --watch" >&2
+fi
+# Wait for every member; the first that fails (while we were not stopping) stops the others.
+rcs=()
+failed=""
+left=$N
+while [ "$left" -gt 0 ]; do
+    for ((m = 0; m < N; m++)); do
+        [ -n "${rcs[$m]:-}" ] && continue
+        kill -0 "${pids[$m]}" 2>/dev/null && continue
+        wait "${pids[$m]}"; rcs[$m]=$?
+        left=$((left - 1))
+        if [ "${rcs[$m]}" -ne 0 ] && [ "$stopped" -eq 0 ] && [ -z "$failed" ]; then
+            failed=$m
+            stop_members
+        fi
     done
-    out="$POOL_DIR/logs/member-$(printf %03d "$m").out"
-    if [ "$rc" -ne 0 ] && [ "$stopped" -eq 0 ]; then
-        echo "pool.sh: member $m exited with $rc: $(tail -n 1 "$out" 2>/dev/null)" >&2
-        echo "pool.sh: (full output in $out and $POOL_DIR/logs/member-$(printf %03d "$m").log)" >&2
-        status=1
-    fi
+    [ "$left" -gt 0 ] && sleep 0.2
 done
-"$RL_POOL" status "$POOL_DIR" --last 5 2>/dev/null
+if [ -n "$watcher" ]; then
+    kill -TERM "$watcher" 2>/dev/null
+    wait "$watcher"
+fi
+if [ -n "$failed" ]; then
+    out="$(out_of "$failed")"
+    echo "pool.sh: member $failed exited with ${rcs[$failed]}: $(tail -n 1 "$out" 2>/dev/null); stopped the others" >&2
+    echo "pool.sh: (full output in $out and $POOL_DIR/logs/member-$(printf %03d "$failed").log)" >&2
+    exit 1
+fi
 if [ "$stopped" -eq 1 ]; then
     echo "pool.sh: stopped; run the same command again to resume" >&2
     exit 130
 fi
-exit $status
+exit 0

@@ -247,7 +247,8 @@ def test_parent_competes_and_keeps_the_pool_from_losing_ground(tmp_path):
         _deposit(paths, 1, m, r, parent=9.0)
     sel = _decide(paths, cfg, 1, {0, 1, 2})
     assert (sel["winner"], sel["member"], sel["eval_return"]) == ("parent", None, 9.0)
-    assert sel["agent_sha256"] == start["agent_sha256"] and sel["best_branch"] == {"member": 1, "eval_return": 6.0}
+    assert sel["agent_sha256"] == start["agent_sha256"]
+    assert sel["best_branch"] == {"member": 1, "eval_return": 6.0, "score": 6.0}
     assert pool.load_selected_agent(paths, 1).to_bytes() == pool.load_selected_agent(paths, 0).to_bytes()
     # a branch that ties with the parent has not lost ground: it wins (then lowest member among tied branches)
     for m, r in enumerate([9.0, 9.0, 1.0]):
@@ -255,7 +256,7 @@ def test_parent_competes_and_keeps_the_pool_from_losing_ground(tmp_path):
     sel = _decide(paths, cfg, 2, {0, 1, 2})
     assert (sel["winner"], sel["member"]) == ("branch", 0)
     assert sel["parent"] == {"iteration": 1, "member": None, "agent_sha256": start["agent_sha256"],
-                             "eval_return": 9.0}
+                             "eval_return": 9.0, "score": 9.0}
 
 
 def test_parent_score_needs_the_right_parent_and_the_parent_rule(tmp_path):
@@ -291,6 +292,34 @@ def test_revert_to_the_best_after_k_iterations_without_improvement(tmp_path):
     assert [sels[i]["winner"] for i in range(1, 7)] == ["branch", "branch", "branch", "revert", "branch", "branch"]
     assert [sels[i]["since_best"] for i in range(1, 7)] == [0, 0, 1, 0, 1, 0]
     assert sels[4]["reverted_to"] == 2 and sels[4]["eval_return"] == 8.0
-    assert sels[4]["instead"] == {"winner": "branch", "member": 0, "eval_return": 7.0}
+    assert sels[4]["instead"] == {"winner": "branch", "member": 0, "eval_return": 7.0, "score": 7.0}
     assert pool.load_selected_agent(paths, 4).to_bytes() == agent(2).to_bytes()
     assert sels[6]["best"]["iteration"] == 6
+
+
+def test_with_a_reward_shift_selection_compares_the_training_objective(tmp_path):
+    """Shifted pools train on r - c per step, so branches and parent compete on that score;
+    eval_return keeps the env's own return."""
+    paths, cfg = make_pool(tmp_path / "p", pool_size=2, reward_shift=1.0)
+
+    def dep(m, ret, score, parent_ret, parent_score, seed):
+        prev = pool.read_selected(paths, 1 if seed > 9 else 0)
+        pool.deposit(paths, 2 if seed > 9 else 1, m, agent(seed),
+                     {"eval_return": ret, "eval_score": score, "parent_eval_return": parent_ret,
+                      "parent_eval_score": parent_score, "parent_sha256": prev["agent_sha256"]})
+
+    # member 0 lives longer (higher env return), member 1 moves better (higher shifted score)
+    dep(0, 900.0, 50.0, 300.0, 20.0, seed=1)
+    dep(1, 600.0, 80.0, 300.0, 20.0, seed=2)
+    sel = _decide(paths, cfg, 1, {0, 1})
+    assert (sel["winner"], sel["member"], sel["eval_return"], sel["score"]) == ("branch", 1, 600.0, 80.0)
+    # the parent's shifted score beats both branches: it stays, with its env return recorded
+    dep(0, 700.0, 60.0, 650.0, 95.0, seed=11)
+    dep(1, 500.0, 70.0, 650.0, 95.0, seed=12)
+    sel = _decide(paths, cfg, 2, {0, 1})
+    assert (sel["winner"], sel["eval_return"], sel["score"]) == ("parent", 650.0, 95.0)
+    # a deposit without a finite shifted score is skipped with its reason
+    paths3, cfg3 = make_pool(tmp_path / "q", pool_size=2, reward_shift=1.0)
+    pool.deposit(paths3, 1, 0, agent(1), {"eval_return": 5.0})
+    sel = pool.select(paths3, 1, cfg3, _like(paths3), {0}, "timeout", pool.read_selected(paths3, 0))
+    assert sel["winner"] == "carried" and "eval_score" in sel["skipped"][0]["reason"]

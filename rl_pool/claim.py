@@ -1,0 +1,308 @@
+"""Create-once decisions that hold across clients of a shared filesystem.
+
+A pool decides three kinds of thing exactly once, with no coordinator: its
+config (``pool.json``), the initial agent (``iterations/000000/initial.npz``)
+and, per iteration, the selection (``selected.json``). Several members may
+propose at the same moment, from different hosts; exactly one proposal must
+win, and every member must end up reading the winner's bytes.
+
+How a decision is made
+----------------------
+A proposer writes its complete proposal into a private directory
+``.NAME.once.tmp-HOST-PID-RANDOM/data`` (fsynced), then renames that
+directory to the decision's name ``.NAME.once``::
+
+    rename(".selected.json.once.tmp-node7-4711-9f3a", ".selected.json.once")
+
+``rename(2)`` of a directory onto an existing, non-empty directory fails
+(``ENOTEMPTY`` or ``EEXIST``; POSIX), and the check and the rename are one
+step where the namespace lives: one RENAME call on an NFS server, the
+metadata server on Lustre, GPFS/Spectrum Scale, CephFS and BeeGFS, and on
+SeaweedFS the filer, which holds a lock on both paths while it renames (and
+in our measurement 6 racers on two FUSE mounts had exactly one winner in each
+of 230 rounds). So exactly one proposal becomes the decision, **and its
+content arrives with it**: there is never a moment when the name is taken
+but empty, so a proposer that dies at any point leaves either nothing (its
+private directory is a temp name, never read) or a complete decision.
+
+Why not the obvious primitives
+------------------------------
+* ``link(2)`` of a complete temp file, or ``open(O_CREAT|O_EXCL)``: exclusive
+  on local disks and NFS, but **not** across SeaweedFS 4.48 FUSE mounts (a
+  mount creates a file in its own metadata cache and tells the filer only
+  on close: both racers succeed and each mount keeps seeing its own file).
+  A 3-member pool on two mounts made two different "first" selections in 3
+  of 4 runs.
+* ``mkdir`` as the claim, then the content written inside: ``mkdir`` is
+  exclusive everywhere we looked, but it is only a test-and-set; the value
+  must follow in a second step. A claimer that dies (or stalls: SIGSTOP,
+  swapping, a hung NFS server) between the two steps leaves a claim without
+  content, and the others cannot tell dead from slow. Completing it for the
+  claimer works only when the content is a pure function of files every
+  member can read, which a selection made by a quorum that went on without
+  a member is not (which deposits count depends on when each member looked),
+  nor ``pool.json`` (the creating member's arguments). Taking a claim over
+  after a deadline lets a slow claimer wake up and write a second decision.
+  (Test-and-set cannot give agreement among three or more processes that
+  may crash; an operation that installs a value in the same step, as this
+  rename does, can.)
+
+Readers accept only a complete, verified decision: ``data`` starts with one
+line ``rl-pool-once 1 sha256=HEX size=N by=TOKEN`` and the payload must
+match it. ``TOKEN`` names the proposal, so a proposer whose rename reply
+was lost (an NFS retransmission answers ``ENOENT`` or ``ENOTEMPTY`` for a
+rename that happened) still learns that it won. An empty ``.NAME.once``
+directory (a stray ``mkdir``; a SeaweedFS filer that crashed in the middle of
+moving a directory's entries) decides nothing, and the next proposal's
+rename replaces it (renaming onto an empty directory is allowed).
+
+After the decision, the plain file ``NAME`` is published: the winner writes
+it (temp file, fsync, ``os.replace``), and anyone who finds it missing writes
+it too. Every write of ``NAME`` carries the decided bytes, so replacing it is
+harmless; people and tools (``status``, ``jq``, the SLURM script) read
+``NAME``, while members decide from ``.NAME.once``.
+
+Costs: a decision is one ``mkdir``, one file written and fsynced, one
+``rename``, and the published copy; reading one is one file open (plus the
+directory walk that :func:`rl_pool.fsutil.read_bytes` does with ``root``).
+"""
+
+from __future__ import annotations
+
+import errno
+import hashlib
+import logging
+import os
+import shutil
+import socket
+import stat
+import time
+import uuid
+
+from . import fsutil
+from .errors import UnsafeFile
+
+log = logging.getLogger("rl_pool")
+
+SUFFIX = ".once"
+DATA = "data"
+MAGIC = "rl-pool-once"
+VERSION = "1"
+#: Cap on a decision's payload (an agent is the largest thing decided: the initial agent).
+MAX_BYTES = fsutil.AGENT_MAX_BYTES
+_HEADER_MAX = 512
+#: Rename errors after which the decision may exist (someone else's, or ours with a lost reply).
+_MAYBE_DECIDED = {errno.ENOTEMPTY, errno.EEXIST, errno.ENOENT, errno.EIO, errno.ESTALE, errno.ETIMEDOUT}
+
+
+class InvalidDecision(ValueError):
+    """A decision directory whose ``data`` does not verify: no rl-pool member wrote it
+    (they write it whole before the rename), so it decides nothing."""
+
+
+class ClaimError(RuntimeError):
+    """A decision could not be made or read (its name stays occupied by something that is not
+    a readable decision)."""
+
+
+def decision_dir(path) -> str:
+    """``DIR/.NAME.once``: the directory that holds the decision about ``DIR/NAME``."""
+    d, base = os.path.split(os.path.abspath(os.fspath(path)))
+    return os.path.join(d, f".{base}{SUFFIX}")
+
+
+def is_decision_dir(name: str) -> bool:
+    """True for ``.NAME.once`` (not for a proposal ``.NAME.once.tmp-...``)."""
+    return name.startswith(".") and name.endswith(SUFFIX) and not fsutil.is_tmp(name)
+
+
+def _token() -> str:
+    return f"{socket.gethostname().split('.')[0]}-{os.getpid()}-{uuid.uuid4().hex[:12]}"
+
+
+def envelope(data: bytes, token: str) -> bytes:
+    """``data`` with its header line: what ``.NAME.once/data`` holds."""
+    head = f"{MAGIC} {VERSION} sha256={hashlib.sha256(data).hexdigest()} size={len(data)} by={token}\n"
+    return head.encode("ascii") + data
+
+
+def unwrap(raw: bytes, where: str = "decision") -> tuple[bytes, str]:
+    """``(payload, token)`` of an envelope; :class:`InvalidDecision` unless it verifies."""
+    nl = raw.find(b"\n", 0, _HEADER_MAX)
+    if nl < 0:
+        raise InvalidDecision(f"{where}: no header line")
+    try:
+        magic, version, *fields = raw[:nl].decode("ascii").split(" ")
+        kv = dict(f.split("=", 1) for f in fields)
+        sha, size, token = kv["sha256"], int(kv["size"]), kv["by"]
+    except (UnicodeDecodeError, ValueError, KeyError):
+        raise InvalidDecision(f"{where}: malformed header") from None
+    if magic != MAGIC or version != VERSION:
+        raise InvalidDecision(f"{where}: not an rl-pool decision (format {magic} {version})")
+    payload = raw[nl + 1:]
+    if len(payload) != size or hashlib.sha256(payload).hexdigest() != sha:
+        raise InvalidDecision(f"{where}: content does not match its header (size or sha256)")
+    return payload, token
+
+
+def _read(path: str, root, cap: int) -> tuple[bytes, str] | None:
+    f = os.path.join(decision_dir(path), DATA)
+    try:
+        raw = fsutil.read_bytes(f, cap + _HEADER_MAX, root=root)
+    except (FileNotFoundError, NotADirectoryError):
+        # No decision yet; or (SeaweedFS) a directory rename still moving its entries.
+        return None
+    return unwrap(raw, f)
+
+
+def read_once(path, root=None, cap: int = MAX_BYTES) -> bytes | None:
+    """The decided bytes for ``path``, or None while nothing is decided.
+
+    ``root``: the pool directory, so the read never goes through a symbolic link
+    (:func:`rl_pool.fsutil.read_bytes`). Raises :class:`InvalidDecision` for a
+    decision that does not verify and :class:`~rl_pool.errors.UnsafeFile` for one
+    that is not a regular file, is reached through a link, or is too large.
+    """
+    got = _read(os.fspath(path), root, cap)
+    return None if got is None else got[0]
+
+
+def create_once(path, data: bytes, root=None, wait: float = 120.0,
+                cap: int = MAX_BYTES) -> tuple[bytes, bool]:
+    """Decide ``path`` once: ``(the decided bytes, whether this call decided them)``.
+
+    If a decision exists, it is returned (and ``path`` published if missing);
+    else ``data`` is proposed, and either it wins or the winner's bytes are
+    read back. ``wait``: how long to wait for a decision that another client
+    has made to become readable here (SeaweedFS: milliseconds; NFS: up to the
+    directory attribute cache time, see docs/cluster.md). Raises
+    :class:`ClaimError` when the name stays occupied by something unreadable,
+    :class:`InvalidDecision` when it holds a decision that does not verify.
+    """
+    path = os.fspath(path)
+    if len(data) > cap:
+        raise ValueError(f"{len(data)} bytes is more than the {cap}-byte cap of a decision")
+    final = decision_dir(path)
+    for _ in range(3):
+        try:
+            got = _read(path, root, cap)
+        except UnsafeFile:
+            if _clear(final, root):
+                continue
+            raise
+        if got is not None:
+            _publish(path, got[0], missing_only=True)
+            return got[0], False
+        token = _token()
+        err = _propose(final, envelope(data, token))
+        if err is None:
+            _fsync_dir(os.path.dirname(final))
+            _publish(path, data)
+            return data, True
+        if err.errno == errno.ENOTDIR and _clear(final, root):
+            continue  # a file, a link or a FIFO held the name: never a decision
+        if err.errno not in _MAYBE_DECIDED | {errno.ENOTDIR}:
+            raise OSError(err.errno, err.strerror, path)
+        got = _await(path, root, cap, wait)
+        if got is None:
+            raise ClaimError(f"{final} exists but holds no readable decision after {wait:.0f}s "
+                             f"(rename said: {err.strerror}); if no rl-pool member is writing it, "
+                             "remove it")
+        payload, by = got
+        _publish(path, payload, missing_only=True)
+        return payload, by == token
+    raise ClaimError(f"{final} keeps being occupied by things that are not decisions")
+
+
+def _propose(final: str, content: bytes) -> OSError | None:
+    """Rename a complete proposal onto ``final``; None if this rename made the decision."""
+    prop = fsutil.tmp_name(final)
+    os.mkdir(prop, 0o755)
+    try:
+        _write_new(os.path.join(prop, DATA), content)
+        _fsync_dir(prop)
+        try:
+            os.rename(prop, final)
+            return None
+        except OSError as exc:
+            return exc
+    finally:
+        remove_proposal(prop)
+
+
+def _await(path: str, root, cap: int, wait: float) -> tuple[bytes, str] | None:
+    """Poll for a decision another client made until it is readable here (1 ms .. 100 ms apart)."""
+    deadline = time.monotonic() + wait
+    delay = 0.001
+    while True:
+        got = _read(path, root, cap)
+        if got is not None or time.monotonic() >= deadline:
+            return got
+        time.sleep(delay)
+        delay = min(delay * 2, 0.1)
+
+
+def _clear(final: str, root) -> bool:
+    """Move a non-directory (a file, a link, a FIFO: never a decision) off a decision's name;
+    True if the name may be free now. A directory is never moved: whatever it holds, a member
+    may have read it, so an invalid one stops the pool with its reason (denial of service is
+    what write access to a pool allows, DESIGN.md §8) instead of being replaced."""
+    try:
+        st = os.lstat(final)
+    except FileNotFoundError:
+        return True
+    if stat.S_ISDIR(st.st_mode):
+        return False
+    log.warning("removing %s: not a decision directory", final)
+    fsutil.set_aside(final, (st.st_dev, st.st_ino), root=root)
+    return True
+
+
+def _publish(path: str, payload: bytes, missing_only: bool = False) -> None:
+    """Write the plain copy ``path`` of a decided payload (any number of writers: same bytes)."""
+    if missing_only and os.path.lexists(path):
+        return
+    try:
+        fsutil.atomic_write(path, payload)
+    except OSError as exc:
+        # The decision stands without its copy; members never read the copy.
+        log.warning("could not publish %s: %s", path, exc.strerror or exc)
+
+
+def _write_new(path: str, data: bytes) -> None:
+    fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL | os.O_CLOEXEC, 0o644)
+    try:
+        view = memoryview(data)
+        while view:
+            view = view[os.write(fd, view):]
+        os.fsync(fd)
+    finally:
+        os.close(fd)
+
+
+def _fsync_dir(d: str) -> None:
+    try:
+        fd = os.open(d or ".", os.O_RDONLY | os.O_DIRECTORY | os.O_CLOEXEC)
+    except OSError:
+        return
+    try:
+        os.fsync(fd)
+    except OSError:
+        pass
+    finally:
+        os.close(fd)
+
+
+def remove_proposal(path: str) -> None:
+    """Remove a proposal directory (or a temp file) and what it holds; quiet if it is gone."""
+    try:
+        st = os.lstat(path)
+    except OSError:
+        return
+    if stat.S_ISDIR(st.st_mode):
+        shutil.rmtree(path, ignore_errors=True)
+    else:
+        try:
+            os.unlink(path)
+        except OSError:
+            pass

@@ -1,0 +1,42 @@
+"""The versions of what a pool runs on, for ``pool.json`` and ``rl-pool status``.
+
+Read from the installed distributions' metadata, so nothing heavy (jax,
+mujoco) is imported to learn its version.
+"""
+
+from __future__ import annotations
+
+import platform
+from importlib import metadata
+
+#: Distributions whose versions decide what a pool computes, in display order.
+PACKAGES = ("rl-pool", "numpy", "jax", "jaxlib", "mujoco", "gymnasium")
+
+
+def versions() -> dict[str, str | None]:
+    """``{"python": "3.11.7", "rl-pool": "0.1.0", "numpy": ..., ...}``; None for a package not installed."""
+    out: dict[str, str | None] = {"python": platform.python_version()}
+    for name in PACKAGES:
+        try:
+            out[name] = metadata.version(name)
+        except metadata.PackageNotFoundError:
+            out[name] = None
+    return out
+
+
+def differences(recorded: dict, current: dict | None = None) -> dict[str, tuple]:
+    """``{name: (recorded, current)}`` for every recorded version that differs from this installation."""
+    current = versions() if current is None else current
+    return {k: (v, current.get(k)) for k, v in recorded.items()
+            if isinstance(k, str) and k in current and v != current.get(k)}
+
+
+def format_versions(v: dict) -> str:
+    """``python 3.11.7, rl-pool 0.1.0, numpy 2.4.6, ...`` (names and values made printable)."""
+    return ", ".join(f"{_text(k)} {_text(x) if x is not None else '-'}" for k, x in v.items())
+
+
+def _text(x) -> str:
+    # a pool file is not trusted: keep whatever it holds on one short printable line
+    s = str(x)
+    return "".join(c if c.isprintable() else "?" for c in s)[:40]
