@@ -219,12 +219,12 @@ def _loop(paths: pool.Paths, cfg: PoolConfig, mc: MemberConfig, hb: pool.Heartbe
             lr = _learning_rate_for(paths, cfg, mc, i)
             prev = pool.read_selected(paths, i - 1)
             continue
-        os.makedirs(paths.iteration(i), exist_ok=True)
-        if os.path.exists(paths.deposit_json(i, me)):
+        pool.make_iteration_dir(paths, i)
+        if os.path.lexists(paths.deposit_json(i, me)):
             log.info("iteration %d: own deposit already on disk; waiting for the others", i)
             mine = None
         else:
-            start = pool.load_selected_agent(paths, i - 1, prev)
+            start = pool.load_selected_agent(paths, i - 1, prev, like=like)
             hb.set(state="training", iteration=i)
             tr = trainer.train(start, env_list, cfg, lr, me, i)
             hb.set(state="evaluating")
@@ -269,7 +269,7 @@ def _loop(paths: pool.Paths, cfg: PoolConfig, mc: MemberConfig, hb: pool.Heartbe
 
 def _deposit_lr(paths: pool.Paths, i: int, m: int) -> float | None:
     try:
-        lr = pool.fsutil.read_json(paths.deposit_json(i, m)).get("learning_rate")
+        lr = paths.read_json(paths.deposit_json(i, m)).get("learning_rate")
     except (OSError, ValueError, AttributeError):
         return None
     return float(lr) if isinstance(lr, (int, float)) and lr > 0 else None

@@ -21,6 +21,7 @@ writer's decision stands and everyone adopts it.
 
 from __future__ import annotations
 
+import errno
 import hashlib
 import logging
 import math
@@ -250,9 +251,29 @@ def load_selected_agent(paths: Paths, i: int, sel: dict | None = None, like: Age
 
 
 # ---------------------------------------------------------------- deposits
+def make_iteration_dir(paths: Paths, i: int) -> str:
+    """``iterations/00000i`` as a real directory: anything else a stranger put at that name (a
+    symlink out of the pool, a file, a FIFO) is set aside first, so no write leaves the pool."""
+    d = paths.iteration(i)
+    os.makedirs(paths.iterations, exist_ok=True)
+    for _ in range(3):
+        try:
+            os.mkdir(d)
+            return d
+        except FileExistsError:
+            st = os.lstat(d)
+            if stat.S_ISDIR(st.st_mode):
+                return d
+            log.warning("%s is not a directory (%s): set aside", d, fsutil._kind(st.st_mode))
+            fsutil.set_aside(d, (st.st_dev, st.st_ino), root=paths.root)
+        except FileNotFoundError:  # the vanishing race with set_aside of a stranger's link
+            continue
+    raise UnsafeFile(errno.EEXIST, "cannot make it a directory", d)
+
+
 def deposit(paths: Paths, i: int, m: int, agent: Agent, metrics: dict) -> dict:
     """Write agent then metrics, each atomically; the metrics file marks the deposit done."""
-    os.makedirs(paths.iteration(i), exist_ok=True)
+    make_iteration_dir(paths, i)
     data = agent.to_bytes()
     fsutil.atomic_write(paths.deposit_npz(i, m), data)
     # Non-finite numbers are written as null (JSON has no NaN); selection then skips the deposit.

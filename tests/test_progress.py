@@ -231,11 +231,12 @@ def test_launch_shows_live_progress_on_a_terminal(tmp_path):
     os.close(slave)
     try:
         out = _wait_for(master, "iterations completed 4", timeout=240)
+        proc.wait(timeout=60)
         out += _read_for(master, 0.3)
     finally:
         if proc.poll() is None:
             proc.send_signal(signal.SIGTERM)
-        proc.wait(timeout=60)
+            proc.wait(timeout=60)
         os.close(master)
     assert proc.returncode == 0, out[-3000:]
     assert "\x1b[1A" in out and "iteration 4 / 4" in out and "finished" in out
