@@ -191,13 +191,13 @@ def create_once(path, data: bytes, root=None, wait: float = 120.0,
                 continue
             raise
         if got is not None:
-            _publish(path, got[0], missing_only=True)
+            _publish(path, got[0], missing_only=True, root=root)
             return got[0], False
         token = _token()
         err = _propose(final, envelope(data, token))
         if err is None:
             _fsync_dir(os.path.dirname(final))
-            _publish(path, data)
+            _publish(path, data, root=root)
             return data, True
         if err.errno == errno.ENOTDIR and _clear(final, root):
             continue  # a file, a link or a FIFO held the name: never a decision
@@ -209,7 +209,7 @@ def create_once(path, data: bytes, root=None, wait: float = 120.0,
                              f"(rename said: {err.strerror}); if no rl-pool member is writing it, "
                              "remove it")
         payload, by = got
-        _publish(path, payload, missing_only=True)
+        _publish(path, payload, missing_only=True, root=root)
         return payload, by == token
     raise ClaimError(f"{final} keeps being occupied by things that are not decisions")
 
@@ -258,11 +258,24 @@ def _clear(final: str, root) -> bool:
     return True
 
 
-def _publish(path: str, payload: bytes, missing_only: bool = False) -> None:
-    """Write the plain copy ``path`` of a decided payload (any number of writers: same bytes)."""
-    if missing_only and os.path.lexists(path):
+def _publish(path: str, payload: bytes, missing_only: bool = False, root=None) -> None:
+    """Write the plain copy ``path`` of a decided payload (any number of writers: same bytes).
+
+    A rename replaces a file, a link or a FIFO at ``path``, not a directory: a directory
+    there (never written by a member) is moved aside first (:func:`rl_pool.fsutil.set_aside`).
+    """
+    try:
+        st = os.lstat(path)
+    except FileNotFoundError:
+        st = None
+    except OSError:
+        return
+    if st is not None and missing_only and stat.S_ISREG(st.st_mode):
         return
     try:
+        if st is not None and stat.S_ISDIR(st.st_mode):
+            log.warning("removing the directory at %s", path)
+            fsutil.set_aside(path, (st.st_dev, st.st_ino), root=root)
         fsutil.atomic_write(path, payload)
     except OSError as exc:
         # The decision stands without its copy; members never read the copy.

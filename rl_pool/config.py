@@ -166,6 +166,8 @@ class MemberConfig:
     quorum: int = opt(0, "deposits needed to go on without stale members (0: majority, floor(N/2)+1)")
     keep_iterations: int = opt(5, "keep non-selected agents of the last K iterations (selected ones are always kept)")
     poll_max: float = opt(0.01, "longest pause between barrier polls, seconds (raise on busy network filesystems)")
+    key_file: str = opt("", "the pool's secret key file (default: ~/.config/rl-pool/keys/<pool id>.key, "
+                            "made with the pool; or $RL_POOL_KEY_FILE, or the key in hex in $RL_POOL_KEY)")
     lr_adapt: float = opt(0.0, "after losing an iteration, take the winner's learning rate times F or 1/F "
                                "(population-based training); 0: keep this member's own rate")
 

@@ -60,7 +60,7 @@ def launch(pool_dir: str, requested: dict, member_opts: dict, learning_rates: li
         raise UsageError(f"--learning-rates has {len(lrs)} values for a pool of {n}")
     for m, lr in enumerate(lrs):
         MemberConfig(**(member_opts | {"member": m, "learning_rate": lr})).validate(n)
-    cfg = pool.open_pool(paths, requested, make_initial)  # refuses a mismatched pool before any spawn
+    cfg = pool.open_pool(paths, requested, make_initial, key_file=member_opts.get("key_file") or None)  # refuses a mismatched pool before any spawn
 
     procs = []
     started = time.time()

@@ -110,7 +110,7 @@ def run(pool_dir: str, requested: dict, mc: MemberConfig, quiet: bool = False) -
     me = mc.member
     try:
         check_arguments(paths, requested, [mc])
-        cfg = pool.open_pool(paths, requested, make_initial)
+        cfg = pool.open_pool(paths, requested, make_initial, key_file=mc.key_file or None)
         _check_not_running(paths, me, mc.heartbeat_timeout)
         _setup_logging(paths, me, quiet)
     except OSError as exc:

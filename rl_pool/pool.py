@@ -93,6 +93,18 @@ class Paths:
     def rel(self, path: str) -> str:
         return os.path.relpath(path, self.root)
 
+    #: The pool's key (:mod:`rl_pool.keys`) once :func:`open_pool` or :func:`attach_key` found it.
+    #: With a key every decision file is signed when written and checked when read; without one
+    #: (a reader such as ``status`` that cannot find the key) files are read unverified.
+    key = None
+
+    def sign(self, doc: dict) -> dict:
+        return self.key.sign(doc) if self.key is not None else doc
+
+    def why_unsigned(self, doc) -> str | None:
+        """None if ``doc`` may decide something here, else why not (unsigned, bad signature)."""
+        return None if self.key is None else self.key.why_invalid(doc)
+
     def read_json(self, path: str, missing_retries: int = 0):
         """A JSON file of this pool, read bounded and never through a link (:mod:`rl_pool.fsutil`)."""
         return fsutil.read_json(path, missing_retries=missing_retries, root=self.root)
@@ -130,7 +142,32 @@ def read_config(paths: Paths) -> PoolConfig:
         raise UsageError(f"{paths.pool_json} is not a valid rl-pool pool config ({why})") from None
 
 
-def open_pool(paths: Paths, requested: dict, initial_agent, lock_timeout: float = 60.0) -> PoolConfig:
+def attach_key(paths: Paths, key_file: str | None = None, required: bool = True) -> bool:
+    """Find the pool's key (``--key-file``, ``RL_POOL_KEY_FILE``/``RL_POOL_KEY``, or the default
+    path named by ``pool.json``'s pool id), check it against the fingerprint and ``pool.json``'s
+    signature, and keep it in ``paths.key``. Members need it (``required``); readers such as
+    ``status`` go on without it and say so (``False``)."""
+    from . import keys
+
+    try:
+        doc = paths.read_json(paths.pool_json)
+        if not isinstance(doc, dict) or "pool_id" not in doc or "key_fingerprint" not in doc:
+            raise UsageError(f"{paths.pool_json} names no pool key")
+        key = keys.load(str(doc["pool_id"]), str(doc["key_fingerprint"]), key_file)
+        why = key.why_invalid(doc)
+        if why:
+            raise UsageError(f"{paths.pool_json} is not this pool's ({why}): someone without the key "
+                             "changed it; refusing to run on it")
+    except (UsageError, OSError, ValueError) as exc:
+        if required:
+            raise UsageError(str(exc)) from None
+        return False
+    paths.key = key
+    return True
+
+
+def open_pool(paths: Paths, requested: dict, initial_agent, lock_timeout: float = 60.0,
+              key_file: str | None = None) -> PoolConfig:
     """Create the pool (once) or check that ``requested`` agrees with it.
 
     ``initial_agent(config) -> (Agent, resolved config)`` builds the iteration-0
@@ -145,6 +182,7 @@ def open_pool(paths: Paths, requested: dict, initial_agent, lock_timeout: float 
         raise UsageError(f"{paths.root} exists and is not a directory")
     if os.path.exists(paths.pool_json):
         cfg = PoolConfig.merged(requested, read_config(paths), where=f"pool {paths.root}")
+        attach_key(paths, key_file)
         _ensure_initial(paths, cfg, initial_agent)
         return cfg
     if os.path.isdir(paths.root):
@@ -158,7 +196,19 @@ def open_pool(paths: Paths, requested: dict, initial_agent, lock_timeout: float 
     _, cfg = initial_agent(cfg)
     for d in (paths.root, paths.iterations, paths.members, paths.logs):
         os.makedirs(d, exist_ok=True)
-    doc = fsutil.dumps(cfg.to_json() | {"created": time.time()})
+    from . import keys
+
+    pool_id = keys.new_pool_id()
+    key, where = keys.create(pool_id, key_file)
+    versions = {}
+    try:
+        from .versions import versions as _versions
+
+        versions = _versions()
+    except Exception:  # versions are a record, never a reason to fail
+        pass
+    doc = fsutil.dumps(key.sign(cfg.to_json() | {"created": time.time(), "pool_id": pool_id,
+                                                 "key_fingerprint": key.fingerprint(), "versions": versions}))
     try:
         with FileLock(paths.lock, timeout=lock_timeout):
             if not os.path.exists(paths.pool_json):
@@ -169,6 +219,9 @@ def open_pool(paths: Paths, requested: dict, initial_agent, lock_timeout: float 
         log.warning("init lock %s unavailable (%s); going on without it", paths.lock, type(exc).__name__)
         fsutil.create_exclusive(paths.pool_json, doc)
     cfg = PoolConfig.merged(requested, read_config(paths), where=f"pool {paths.root}")
+    attach_key(paths, key_file)
+    if paths.key.fingerprint() == key.fingerprint():
+        log.info("pool %s created; its key is %s (mode 0600, outside the pool)", paths.root, where)
     _ensure_initial(paths, cfg, initial_agent)
     return cfg
 
@@ -184,7 +237,7 @@ def _ensure_initial(paths: Paths, cfg: PoolConfig, initial_agent) -> None:
     doc = {"iteration": 0, "member": None, "eval_return": None, "initial": True,
            "agent": paths.rel(paths.initial()), "agent_sha256": sha256(on_disk),
            "considered": [], "skipped": []}
-    fsutil.create_exclusive(paths.selected(0), fsutil.dumps(doc))
+    fsutil.create_exclusive(paths.selected(0), fsutil.dumps(paths.sign(doc)))
 
 
 # ---------------------------------------------------------------- iterations
@@ -214,7 +267,14 @@ def read_selected(paths: Paths, i: int) -> dict | None:
     except (OSError, ValueError) as exc:
         _warn_once((paths.selected(i), str(exc)), "unreadable %s: %s", paths.selected(i), _why(exc))
         return None
-    return doc if isinstance(doc, dict) and doc.get("iteration") == i else None
+    if not isinstance(doc, dict) or doc.get("iteration") != i:
+        return None
+    why = paths.why_unsigned(doc)
+    if why:
+        _warn_once((paths.selected(i), why), "ignoring %s: %s (not written by a key holder)",
+                   paths.selected(i), why)
+        return None
+    return doc
 
 
 def _why(exc: Exception) -> str:
@@ -277,7 +337,7 @@ def deposit(paths: Paths, i: int, m: int, agent: Agent, metrics: dict) -> dict:
     data = agent.to_bytes()
     fsutil.atomic_write(paths.deposit_npz(i, m), data)
     # Non-finite numbers are written as null (JSON has no NaN); selection then skips the deposit.
-    doc = fsutil.finite_or_null({"iteration": i, "member": m, "agent_sha256": sha256(data), **metrics})
+    doc = paths.sign(fsutil.finite_or_null({"iteration": i, "member": m, "agent_sha256": sha256(data), **metrics}))
     fsutil.write_json(paths.deposit_json(i, m), doc)
     return doc
 
@@ -314,6 +374,9 @@ def read_deposit(paths: Paths, i: int, m: int, like: Agent | None = None):
         raise ValueError(f"metrics unreadable ({type(exc).__name__})") from None
     if not isinstance(doc, dict):
         raise ValueError("metrics are not a JSON object")
+    why = paths.why_unsigned(doc)
+    if why:
+        raise ValueError(f"metrics {why} (not written by a key holder)")
     if doc.get("iteration") != i or doc.get("member") != m:
         raise ValueError("metrics name another iteration or member")
     ret = doc.get("eval_return")
@@ -446,12 +509,13 @@ def _track_best(out: dict, previous: dict, revert_after: int) -> dict:
 def publish_selection(paths: Paths, selection: dict, by: int) -> tuple[dict, bool]:
     """Create ``selected.json`` unless it exists; return what is on disk and whether we wrote it."""
     i = selection["iteration"]
-    doc = selection | {"selected_by": by, "time": time.time()}
-    for _ in range(3):
+    doc = paths.sign(selection | {"selected_by": by, "time": time.time()})
+    for _ in range(10):
         if fsutil.create_exclusive(paths.selected(i), fsutil.dumps(doc)):
             return doc, True
         # Someone else decided first: adopt their decision, never our own.
         try:
+            st = os.lstat(paths.selected(i))
             on_disk = paths.read_json(paths.selected(i), missing_retries=8)
         except UnsafeFile as exc:
             # Not a file any member writes (a FIFO, a directory, a link, a huge file): it holds
@@ -463,8 +527,15 @@ def publish_selection(paths: Paths, selection: dict, by: int) -> tuple[dict, boo
             continue
         except (OSError, ValueError) as exc:
             raise RuntimeError(f"{paths.selected(i)} exists but cannot be read: {exc}") from None
-        if not isinstance(on_disk, dict) or on_disk.get("iteration") != i:
-            raise RuntimeError(f"{paths.selected(i)} is not a selection of iteration {i}")
+        why = paths.why_unsigned(on_disk)
+        if why or not isinstance(on_disk, dict) or on_disk.get("iteration") != i:
+            # Not a key holder's decision (a forgery created first, or garbage): it holds the name
+            # but decides nothing. Move it aside and decide; a stranger can repeat this (denial of
+            # service) but never make the pool adopt their selection.
+            log.warning("iteration %d: setting aside %s (%s)", i, paths.selected(i),
+                        why or "not a selection of this iteration")
+            fsutil.set_aside(paths.selected(i), (st.st_dev, st.st_ino), root=paths.root)
+            continue
         return on_disk, False
     raise RuntimeError(f"{paths.selected(i)} keeps being occupied by files that are not selections")
 
@@ -482,6 +553,8 @@ def update_best(paths: Paths, selection: dict | None) -> bool:
         best = paths.read_json(paths.best_json)
     except (OSError, ValueError):
         best = None
+    if paths.why_unsigned(best):
+        best = None  # not a key holder's: replace it
     # Ties keep the earlier iteration, as status's best does.
     if isinstance(best, dict) and isinstance(best.get("eval_return"), (int, float)) and \
             (best["eval_return"], -best.get("iteration", 0)) >= (ret, -selection["iteration"]):
@@ -497,8 +570,9 @@ def update_best(paths: Paths, selection: dict | None) -> bool:
             log.warning("removing the directory at %s", target)
             fsutil.set_aside(target, (st.st_dev, st.st_ino), root=paths.root)
     fsutil.atomic_write(paths.best_npz, data)
-    fsutil.write_json(paths.best_json, {"iteration": selection["iteration"], "member": selection["member"],
-                                        "eval_return": ret, "agent": selection["agent"]})
+    fsutil.write_json(paths.best_json, paths.sign({
+        "iteration": selection["iteration"], "member": selection["member"], "winner": selection.get("winner"),
+        "eval_return": ret, "agent": selection["agent"], "agent_sha256": sha256(data)}))
     return True
 
 
@@ -557,7 +631,8 @@ def read_heartbeat(paths: Paths, m: int) -> dict | None:
         doc = paths.read_json(paths.heartbeat(m))
     except (OSError, ValueError):
         return None
-    return doc if isinstance(doc, dict) else None
+    # A heartbeat decides who counts as alive at the barrier: only a key holder's counts.
+    return doc if isinstance(doc, dict) and not paths.why_unsigned(doc) else None
 
 
 class Heartbeat:
@@ -589,7 +664,7 @@ class Heartbeat:
         with self._lock:
             self.doc["beat"] += 1
             self.doc["time"] = time.time()
-            data = fsutil.dumps(self.doc)
+            data = fsutil.dumps(self.paths.sign(fsutil.finite_or_null(self.doc)))
         try:
             fsutil.atomic_write(self.paths.heartbeat(self.member), data, sync_dir=False)
         except OSError as exc:

@@ -218,26 +218,26 @@ def panel(snap: Snapshot):
     grid = Table.grid(padding=(0, 2))
     grid.add_column()
     grid.add_column()
-    grid.add_column()
     it = Text(f"iteration {snap.iteration}" + (f" / {snap.target}" if snap.target is not None else ""),
               style="bold")
     bar = ProgressBar(total=float(snap.target or 1), completed=float(min(snap.iteration, snap.target or 0)),
                       width=30) if snap.target else Text("")
-    grid.add_row(it, bar, Text(f"elapsed {clock(snap.elapsed)}   left "
-                               + ("~" + clock(snap.eta) if snap.eta is not None else "-")
-                               + f"   {_rate(snap.steps_per_second)} env steps/s"))
+    grid.add_row(it, bar)
+    pace = Text(f"elapsed {clock(snap.elapsed)}   left "
+                + ("~" + clock(snap.eta) if snap.eta is not None else "-")
+                + f"   {_rate(snap.steps_per_second)} env steps/s")
     sel = Text("selected ")
     if snap.last is not None:
         sel.append(_f(snap.last["eval_return"]), style="bold cyan")
         sel.append(f" ({status.describe(snap.last)})")
     else:
         sel.append("-")
-    sel.append("    best ")
+    best = Text("best     ")
     if snap.best is not None:
-        sel.append(_f(snap.best["eval_return"]), style="bold green")
-        sel.append(f" (iteration {snap.best['iteration']}, {status.describe(snap.best)})")
+        best.append(_f(snap.best["eval_return"]), style="bold green")
+        best.append(f" (iteration {snap.best['iteration']}, {status.describe(snap.best)})")
     else:
-        sel.append("-")
+        best.append("-")
 
     mt = Table(box=None, padding=(0, 2), header_style="bold dim")
     for col, just in (("member", "right"), ("state", "left"), ("iter", "right"), ("lr", "right"),
@@ -251,7 +251,7 @@ def panel(snap: Snapshot):
         mt.add_row(str(m["member"]), Text(st, style=style.get(st, "")), _s(m.get("iteration")),
                    _g(m.get("learning_rate")), _f(m.get("last_return")),
                    "-" if age is None else f"{age:.0f}s ago")
-    parts = [head, grid, sel, Text(""), mt]
+    parts = [head, grid, pace, sel, best, Text(""), mt]
     for m in snap.members:
         if m.get("error") and m["state"] in ("failed", "stopped", "dead"):
             parts.append(Text(f"member {m['member']}: {str(m['error'])[:300]}", style="red"))

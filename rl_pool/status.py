@@ -148,6 +148,9 @@ def members(paths: pool.Paths, pool_size: int) -> list[dict]:
 def status(pool_dir: str) -> dict:
     paths = pool.Paths(pool_dir)
     cfg = pool.read_config(paths)
+    # With the key (the default path, --key-file's env var) only key holders' files count, as for
+    # members; a reader without it sees the files unverified, and says so.
+    verified = pool.attach_key(paths, required=False)
     rows = history(paths, cfg.pool_size)
     doc = _read(paths.pool_json) or {}
     created = _num(doc.get("created"))

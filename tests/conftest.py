@@ -1,12 +1,19 @@
 import os
 import subprocess
 import sys
+import tempfile
 
 import pytest
 
 from rl_pool.threads import cap_threads
 
 cap_threads()
+
+# Pool keys made by the tests (and the members they start) go to a throw-away config directory,
+# never to the user's ~/.config/rl-pool/keys.
+os.environ["XDG_CONFIG_HOME"] = tempfile.mkdtemp(prefix="rl-pool-test-config-")
+for _var in ("RL_POOL_KEY", "RL_POOL_KEY_FILE"):
+    os.environ.pop(_var, None)
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 

@@ -164,3 +164,17 @@ def test_processes_racing_for_the_same_names_have_exactly_one_winner_each_time(t
     assert not [n for n in os.listdir(tmp_path) if ".tmp-" in n], "a proposal was left behind"
     # a real race, not a relay: more than one process won some names
     assert sum(1 for w in wins.values() if w) >= 2, wins
+
+
+def test_special_things_at_the_plain_name_are_replaced_by_the_decided_copy(tmp_path):
+    p = tmp_path / "selected.json"
+    p.mkdir()
+    (p / "junk").write_text("x")  # a directory a rename cannot replace: moved aside
+    assert claim.create_once(p, b"decided", root=tmp_path) == (b"decided", True)
+    assert p.read_bytes() == b"decided"
+    q = tmp_path / "other.json"
+    claim.create_once(q, b"first", root=tmp_path)
+    q.unlink()
+    os.mkfifo(q)  # a FIFO where the copy was: the next member writes the copy again
+    assert claim.create_once(q, b"second", root=tmp_path) == (b"first", False)
+    assert q.read_bytes() == b"first"

@@ -207,7 +207,9 @@ def test_hostile_deposits_are_skipped_with_their_reason(tmp_path):
     like = pool.load_selected_agent(paths, 0)
     pool.deposit(paths, 1, 0, agent(0), {"eval_return": 1.0})
     # 1: valid metrics, but the agent is a link to a valid agent outside the pool
-    doc = pool.deposit(pool.Paths(tmp_path / "q"), 1, 1, agent(1), {"eval_return": 9.0})
+    elsewhere = pool.Paths(tmp_path / "q")
+    elsewhere.key = paths.key  # a key holder's valid deposit, only in the wrong place
+    doc = pool.deposit(elsewhere, 1, 1, agent(1), {"eval_return": 9.0})
     (tmp_path / "p/iterations/000001/member-001.json").write_text(json.dumps(doc))
     os.symlink(tmp_path / "q/iterations/000001/member-001.npz", paths.deposit_npz(1, 1))
     # 2: metrics are a FIFO; 3: a socket; 4: a huge sparse agent; 5: metrics are a directory

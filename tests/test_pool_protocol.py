@@ -109,14 +109,15 @@ def test_hostile_and_broken_deposits_are_skipped_with_reasons(tmp_path):
     np.savez(buf, **(arrays | {"param.w": np.array([Evil(marker)], dtype=object)}))
     data = buf.getvalue()
     open(paths.deposit_npz(1, 1), "wb").write(data)
-    fsutil.write_json(paths.deposit_json(1, 1), {"iteration": 1, "member": 1, "eval_return": 1e9,
-                                                 "agent_sha256": pool.sha256(data)})
+    fsutil.write_json(paths.deposit_json(1, 1), paths.sign({"iteration": 1, "member": 1, "eval_return": 1e9,
+                                                            "agent_sha256": pool.sha256(data)}))
     # 2: garbage JSON
     open(paths.deposit_json(1, 2), "w").write("{\"eval_return\": 1e99, oops")
     # 3: a valid agent whose JSON claims NaN
     _deposit(paths, 1, 3, 1.0)
     doc = json.loads(open(paths.deposit_json(1, 3)).read())
-    open(paths.deposit_json(1, 3), "w").write(json.dumps(doc | {"eval_return": float("nan")}))
+    # a member whose return came out NaN writes null (JSON has no NaN; signed, like any deposit)
+    open(paths.deposit_json(1, 3), "w").write(json.dumps(paths.sign(doc | {"eval_return": None})))
     sel = pool.select(paths, 1, cfg, _like(paths), pool.present(paths, 1, 4), "complete",
                       pool.read_selected(paths, 0))
     assert sel["member"] == 0
@@ -212,11 +213,11 @@ def test_liveness_judges_change_not_clocks(tmp_path):
     assert "unchanged" in live.stale(1)
     # A heartbeat from another host with a wildly wrong clock, but changing: alive.
     doc = {"member": 1, "pid": 1, "host": "elsewhere", "beat": 1, "state": "training", "time": 0}
-    fsutil.write_json(paths.heartbeat(1), doc)
+    fsutil.write_json(paths.heartbeat(1), paths.sign(doc))
     assert live.stale(1) is None
-    fsutil.write_json(paths.heartbeat(1), doc | {"state": "failed", "beat": 2})
+    fsutil.write_json(paths.heartbeat(1), paths.sign(doc | {"state": "failed", "beat": 2}))
     assert "failed" in live.stale(1)
-    fsutil.write_json(paths.heartbeat(1), doc | {"host": pool.HOST, "pid": 2**22 + 12345, "beat": 3})
+    fsutil.write_json(paths.heartbeat(1), paths.sign(doc | {"host": pool.HOST, "pid": 2**22 + 12345, "beat": 3}))
     assert "gone" in live.stale(1)
 
 

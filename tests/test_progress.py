@@ -20,6 +20,12 @@ T0 = 1_700_000_000.0  # pool creation time of the fake pools
 STEPS = {"train_steps": 1000, "eval_steps": 100, "parent_eval_steps": 100}  # 1200 env steps per member
 
 
+def _sign(paths, doc):
+    """Sign as a key holder does (pools made by this rl-pool verify what decides anything)."""
+    sign = getattr(paths, "sign", None)
+    return sign(doc) if sign is not None else doc
+
+
 def write_iteration(paths, i, returns, winner="branch", t=None, lrs=None, parent_return=None):
     """Pool files of one decided iteration, as members write them: deposits, waits, selection.
 
@@ -30,10 +36,10 @@ def write_iteration(paths, i, returns, winner="branch", t=None, lrs=None, parent
     os.makedirs(paths.iteration(i), exist_ok=True)
     lrs = lrs or [0.01 * 10 ** m for m in range(len(returns))]
     for m, ret in enumerate(returns):
-        fsutil.write_json(paths.deposit_json(i, m), {
+        fsutil.write_json(paths.deposit_json(i, m), _sign(paths, {
             "iteration": i, "member": m, "eval_return": ret, "learning_rate": lrs[m],
             "train_seconds": 0.5, "eval_seconds": 0.1, "train_return_mean": ret - 1.0, "time": t - 0.1,
-            "agent_sha256": "0" * 64, **STEPS})
+            "agent_sha256": "0" * 64, **STEPS}))
         fsutil.write_json(paths.wait_json(i, m), {"iteration": i, "member": m, "wait_seconds": 0.01 * (m + 1)})
     best_m = max(range(len(returns)), key=lambda m: (returns[m], -m))
     prev = pool.read_selected(paths, i - 1)
@@ -43,16 +49,16 @@ def write_iteration(paths, i, returns, winner="branch", t=None, lrs=None, parent
     else:
         sel = {"winner": winner, "member": None, "eval_return": parent_return, "agent": prev["agent"]}
     considered = [{"member": m, "eval_return": r} for m, r in enumerate(returns)]
-    fsutil.write_json(paths.selected(i), {"iteration": i, "considered": considered, "skipped": [],
-                                          "quorum_reason": "complete", "agent_sha256": "0" * 64,
-                                          "time": t, **sel})
+    fsutil.write_json(paths.selected(i), _sign(paths, {
+        "iteration": i, "considered": considered, "skipped": [], "quorum_reason": "complete",
+        "agent_sha256": "0" * 64, "time": t, **sel}))
 
 
 def fake_pool(root, returns_by_iteration, pool_size=2, **kw):
     paths, _ = make_pool(root, pool_size=pool_size, **kw)
     doc = json.loads(open(paths.pool_json).read())
     doc["created"] = T0
-    fsutil.write_json(paths.pool_json, doc)  # test-only rewrite of the create-once file: a known clock
+    fsutil.write_json(paths.pool_json, _sign(paths, doc))  # test-only rewrite of the create-once file: a known clock
     for i, rets in enumerate(returns_by_iteration, start=1):
         if isinstance(rets, tuple):  # (returns, winner, parent_return)
             write_iteration(paths, i, rets[0], winner=rets[1], parent_return=rets[2])

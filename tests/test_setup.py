@@ -14,6 +14,7 @@ from rl_pool import fsutil, status, versions
 
 from .conftest import ROOT, rl_pool
 from .helpers import make_pool
+from .test_progress import _sign
 
 LOCK = os.path.join(ROOT, "constraints.txt")
 SETUP = os.path.join(ROOT, "shell", "setup.sh")
@@ -39,10 +40,11 @@ def test_versions_names_what_decides_a_result():
 
 def test_status_shows_the_versions_recorded_in_pool_json(tmp_path):
     paths, _ = make_pool(tmp_path / "p")
-    assert json.loads(rl_pool("status", paths.root, "--json", check=0).stdout)["versions"] is None
     doc = json.loads(open(paths.pool_json).read())
+    recorded = json.loads(rl_pool("status", paths.root, "--json", check=0).stdout)["versions"]
+    assert recorded == doc.get("versions")  # what pool.json says (None for a pool made before versions)
     recorded = versions.versions() | {"jax": "0.0.1\x1b[31m"}  # a pool made elsewhere, and a hostile string
-    fsutil.write_json(paths.pool_json, doc | {"versions": recorded})
+    fsutil.write_json(paths.pool_json, _sign(paths, doc | {"versions": recorded}))
     st = json.loads(rl_pool("status", paths.root, "--json", check=0).stdout)
     assert st["versions"] == recorded
     table = rl_pool("status", paths.root, check=0).stdout
@@ -52,6 +54,10 @@ def test_status_shows_the_versions_recorded_in_pool_json(tmp_path):
     here = next(ln for ln in table.splitlines() if "installed here" in ln)
     assert f"jax {metadata.version('jax')}" in here and "numpy" not in here
     assert status.recorded_versions({"versions": "3.11"}) is None
+    doc.pop("versions", None)
+    fsutil.write_json(paths.pool_json, _sign(paths, doc))
+    assert json.loads(rl_pool("status", paths.root, "--json", check=0).stdout)["versions"] is None
+    assert "versions:" not in rl_pool("status", paths.root, check=0).stdout
 
 
 def test_the_lock_pins_every_installed_dependency_exactly():
