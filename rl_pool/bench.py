@@ -1,4 +1,5 @@
-"""Benchmarks that print figures (not timed tests): ``python -m rl_pool.bench {throughput,scaling,evaluate}``.
+"""Benchmarks that print figures (not timed tests):
+``python -m rl_pool.bench {throughput,scaling,evaluate,protocol}``.
 
 All figures of one run come from the same machine at the same time; compare
 them as ratios, since absolute times on a shared machine are noisy.
@@ -7,8 +8,13 @@ them as ratios, since absolute times on a shared machine are noisy.
 from __future__ import annotations
 
 import argparse
+import builtins
+import collections
+import itertools
+import json
 import os
 import shutil
+import stat
 import statistics
 import subprocess
 import sys
@@ -154,6 +160,194 @@ def evaluation(args) -> None:
     print(f"  speed-up                         {one['seconds'] / many['seconds']:7.2f}x   (target >= 1.7 for 2 workers)")
 
 
+# ---------------------------------------------------------------- protocol cost
+class _FsCounter:
+    """Counts one member's filesystem calls on the pool directory (nothing else), without strace.
+
+    Installed in the member's process before the CLI runs (``_member`` below): it wraps the
+    ``os`` functions and ``open`` the protocol uses and classifies each call on a path inside
+    the pool. Paths relative to a directory descriptor (``openat``-style walks in
+    :mod:`rl_pool.fsutil`) are resolved through the descriptors it saw opened. A snapshot is
+    taken each time this member's deposit marker is renamed into place, so the difference of
+    two snapshots is one whole iteration: barrier, selection, training, deposit.
+    """
+
+    def __init__(self, root: str, me: int):
+        self.roots = {os.path.abspath(root) + os.sep, os.path.realpath(root) + os.sep}
+        self.marker = f"{os.sep}member-{me:03d}.json"
+        self.count: collections.Counter = collections.Counter()
+        self.marks: list = []
+        self.fds: dict[int, str] = {}
+
+    def where(self, path, dir_fd=None) -> str | None:
+        if isinstance(path, int):
+            return self.fds.get(path)
+        try:
+            path = os.fsdecode(path)
+        except TypeError:
+            return None
+        if dir_fd is not None and not os.path.isabs(path):
+            base = self.fds.get(dir_fd)
+            return None if base is None else os.path.join(base, path)
+        full = os.path.abspath(path)
+        return full if any((full + os.sep).startswith(r) for r in self.roots) else None
+
+    def install(self) -> None:
+        real = {n: getattr(os, n) for n in ("open", "close", "stat", "lstat", "listdir", "scandir", "rename",
+                                             "replace", "unlink", "mkdir", "rmdir", "link", "fsync")}
+        real_open, fstat, c = builtins.open, os.fstat, self
+
+        def os_open(path, flags, mode=0o777, *, dir_fd=None):
+            where = c.where(path, dir_fd)
+            try:
+                fd = real["open"](path, flags, mode, dir_fd=dir_fd)
+            except OSError as exc:
+                if where:
+                    c.count["open_failed" if exc.errno != 2 else "open_missing"] += 1
+                raise
+            if where:
+                if stat.S_ISDIR(fstat(fd).st_mode):
+                    c.count["open_dir"] += 1
+                else:
+                    c.count["open_write" if flags & (os.O_WRONLY | os.O_RDWR | os.O_CREAT) else "open_read"] += 1
+                c.fds[fd] = where
+            return fd
+
+        def os_close(fd):
+            c.fds.pop(fd, None)
+            return real["close"](fd)
+
+        def py_open(file, mode="r", *a, **kw):
+            where = c.where(file) if not isinstance(file, int) else None
+            try:
+                fh = real_open(file, mode, *a, **kw)
+            except OSError as exc:
+                if where:
+                    c.count["open_failed" if exc.errno != 2 else "open_missing"] += 1
+                raise
+            if where:
+                c.count["open_write" if any(x in mode for x in "wax+") else "open_read"] += 1
+            return fh
+
+        def counted(name, key, paths=1):
+            fn = real[name]
+
+            def wrapper(*a, **kw):
+                if any(c.where(a[k] if k < len(a) else ".", kw.get("dir_fd", kw.get("src_dir_fd")))
+                       for k in range(paths)):
+                    c.count[key] += 1
+                    if name == "replace" and len(a) > 1 and os.fsdecode(a[1]).endswith(c.marker) \
+                            and f"{os.sep}iterations{os.sep}" in os.fsdecode(a[1]):
+                        out = fn(*a, **kw)
+                        c.marks.append((time.monotonic(), dict(c.count)))
+                        return out
+                return fn(*a, **kw)
+            return wrapper
+
+        def fsync(fd):
+            if fd in c.fds:
+                c.count["fsync"] += 1
+            return real["fsync"](fd)
+
+        os.open, os.close, builtins.open, os.fsync = os_open, os_close, py_open, fsync
+        os.stat, os.lstat = counted("stat", "stat"), counted("lstat", "stat")
+        os.listdir, os.scandir = counted("listdir", "listing"), counted("scandir", "listing")
+        os.rename, os.replace = counted("rename", "rename"), counted("replace", "rename")
+        os.unlink, os.rmdir, os.mkdir = counted("unlink", "unlink"), counted("rmdir", "rmdir"), counted("mkdir", "mkdir")
+        os.link = counted("link", "link")
+
+
+def _member(args) -> None:
+    """One member under :class:`_FsCounter` (``python -m rl_pool.bench _member OUT -- train ...``)."""
+    import atexit
+
+    rest = args.rest[1:] if args.rest[:1] == ["--"] else args.rest
+    root = rest[rest.index("--pool-dir") + 1]
+    me = int(rest[rest.index("--member") + 1])
+    counter = _FsCounter(root, me)
+    counter.install()
+
+    def dump():
+        with open(args.out + ".tmp", "w") as fh:
+            json.dump({"marks": counter.marks, "total": dict(counter.count)}, fh)
+        os.replace(args.out + ".tmp", args.out)
+
+    atexit.register(dump)
+    from .cli import main as cli_main
+
+    sys.exit(cli_main(rest))
+
+
+KINDS = ("open_read", "open_write", "open_missing", "open_dir", "listing", "stat", "rename", "fsync",
+         "mkdir", "unlink")
+
+
+def _protocol_pool(n: int, dirs: list[str], iterations: int, warmup: int, extra: list[str]) -> dict:
+    name = f"bench-protocol-{n}-{os.getpid()}-{time.time_ns() % 10**6}"
+    roots = [os.path.join(d, name) for d in dirs]
+    counts = tempfile.mkdtemp(prefix="rl-pool-counts-")
+    procs = []
+    try:
+        for m in range(n):
+            cmd = [sys.executable, "-m", "rl_pool.bench", "_member", os.path.join(counts, f"{m}.json"), "--",
+                   "train", "--pool-dir", roots[m % len(roots)], "--pool-size", str(n), "--member", str(m),
+                   "--iterations", str(iterations), "--learning-rate", "0.1", "--quiet", *extra]
+            procs.append(subprocess.Popen(cmd, env=capped_environ(), stdout=subprocess.DEVNULL,
+                                          stderr=subprocess.PIPE, text=True))
+        for p in procs:
+            _, err = p.communicate()
+            if p.returncode != 0:
+                raise SystemExit(f"member exited with {p.returncode}: {err.strip()[-500:]}")
+        per_kind = {k: [] for k in KINDS}
+        secs = []
+        for m in range(n):
+            with open(os.path.join(counts, f"{m}.json")) as fh:
+                marks = json.load(fh)["marks"][warmup:]
+            for (t0, c0), (t1, c1) in itertools.pairwise(marks):
+                secs.append(t1 - t0)
+                for k in KINDS:
+                    per_kind[k].append(c1.get(k, 0) - c0.get(k, 0))
+        return {"ms": 1000 * statistics.median(secs),
+                **{k: statistics.mean(v) for k, v in per_kind.items()},
+                "cycles": len(secs)}
+    finally:
+        for p in procs:
+            if p.poll() is None:
+                p.kill()
+        shutil.rmtree(counts, ignore_errors=True)
+        for r in roots[:1]:
+            shutil.rmtree(r, ignore_errors=True)
+
+
+def protocol(args) -> None:
+    """Protocol cost per member and iteration with trivial work: time, opens, listings, stats."""
+    base = None if args.dir else tempfile.mkdtemp(prefix="rl-pool-bench-")
+    dirs = args.dir or [base]
+    extra = ["--env", args.env, "--max-episode-steps", "10", "--train-episodes", "1", "--batch-episodes", "1",
+             "--eval-episodes", "1", "--heartbeat-timeout", "600", "--barrier-timeout", "600"]
+    print(f"env {args.env}, 10-step episodes, 1 training + 1 evaluation episode per member and iteration, "
+          f"{args.iterations} iterations (first {args.warmup} not counted); pool on {', '.join(dirs)}")
+    print("per member and iteration (mean over members and iterations; ms: median):")
+    print(f"{'N':>4} {'ms/iter':>8} {'reads':>6} {'writes':>6} {'missing':>7} {'dir opens':>9} "
+          f"{'listings':>8} {'stats':>6} {'renames':>7} {'fsyncs':>6} {'reads <= N+3':>12}")
+    rows = []
+    try:
+        for n in args.members:
+            r = _protocol_pool(n, dirs, args.iterations, args.warmup, extra)
+            rows.append({"members": n, **r})
+            print(f"{n:>4} {r['ms']:>8.1f} {r['open_read']:>6.1f} {r['open_write']:>6.1f} "
+                  f"{r['open_missing']:>7.1f} {r['open_dir']:>9.1f} {r['listing']:>8.1f} {r['stat']:>6.1f} "
+                  f"{r['rename']:>7.1f} {r['fsync']:>6.1f} {'yes' if r['open_read'] <= n + 3 else 'no':>12}",
+                  flush=True)
+    finally:
+        if base:
+            shutil.rmtree(base, ignore_errors=True)
+    print("reads/writes: files opened to read/write; missing: opens of names not there (yet): polls;")
+    print("dir opens: directories opened (fsync of a directory, the no-symlink walk of rl_pool.fsutil)")
+    if args.json:
+        print(json.dumps(rows))
+
+
 def main(argv=None) -> None:
     cap_threads()
     p = argparse.ArgumentParser(prog="python -m rl_pool.bench")
@@ -177,6 +371,21 @@ def main(argv=None) -> None:
     e.add_argument("--episodes", type=int, default=160)
     e.add_argument("--workers", type=int, default=2)
     e.set_defaults(func=evaluation)
+    pr = sub.add_parser("protocol", help="files opened, listings and time per member and iteration, N = 2..32")
+    pr.add_argument("--members", type=lambda t: [int(x) for x in t.split(",")], default=[2, 4, 8, 16, 32],
+                    help="pool sizes (default 2,4,8,16,32)")
+    pr.add_argument("--iterations", type=int, default=10)
+    pr.add_argument("--warmup", type=int, default=2, help="first iterations not counted (start-up, JIT)")
+    pr.add_argument("--env", default="Swimmer-v5")
+    pr.add_argument("--dir", action="append", default=None,
+                    help="where the pool lives (default: a temp dir); repeat for mounts of one shared "
+                         "directory (members alternate between them)")
+    pr.add_argument("--json", action="store_true", help="also print the rows as one JSON list")
+    pr.set_defaults(func=protocol)
+    m = sub.add_parser("_member")  # internal: one member under the filesystem-call counter
+    m.add_argument("out")
+    m.add_argument("rest", nargs=argparse.REMAINDER)
+    m.set_defaults(func=_member)
     args = p.parse_args(argv)
     args.func(args)
 

@@ -19,7 +19,7 @@ import sys
 import time
 import traceback
 
-from . import envs, pool, trainer
+from . import envs, pool, tb, trainer
 from .agent import Agent, AgentMeta
 from .config import MemberConfig, PoolConfig
 from .errors import Stopped, UsageError
@@ -210,6 +210,8 @@ def _loop(paths: pool.Paths, cfg: PoolConfig, mc: MemberConfig, hb: pool.Heartbe
     prev = pool.read_selected(paths, first - 1)
     pool.update_best(paths, prev)  # in case a kill skipped it
     lr = _learning_rate_for(paths, cfg, mc, first)
+    board = tb.Board(paths, me, cfg.pool_size)  # TensorBoard: POOL/tb/member-III/ (member 0 also POOL/tb/pool/)
+    board.catch_up(first - 1)
     i = first
     while i <= mc.iterations:
         if pool.read_selected(paths, i) is not None:
@@ -222,7 +224,7 @@ def _loop(paths: pool.Paths, cfg: PoolConfig, mc: MemberConfig, hb: pool.Heartbe
         pool.make_iteration_dir(paths, i)
         if os.path.lexists(paths.deposit_json(i, me)):
             log.info("iteration %d: own deposit already on disk; waiting for the others", i)
-            mine = None
+            mine = metrics = None
         else:
             start = pool.load_selected_agent(paths, i - 1, prev, like=like)
             hb.set(state="training", iteration=i)
@@ -261,10 +263,12 @@ def _loop(paths: pool.Paths, cfg: PoolConfig, mc: MemberConfig, hb: pool.Heartbe
             pool.collect_garbage(paths, i - mc.keep_iterations)
         log.info("iteration %d: selected %s (eval return %s); mine %s; waited %.3fs",
                  i, describe_winner(sel), _fmt(sel.get("eval_return")), _fmt(mine), res.waited)
+        board.record(i, sel, metrics, res.waited)
         lr = _next_learning_rate(paths, cfg, mc, sel, lr)
         hb.set(selected=sel.get("member"), selected_return=sel.get("eval_return"), learning_rate=lr)
         prev = sel
         i += 1
+    board.close()
 
 
 def _deposit_lr(paths: pool.Paths, i: int, m: int) -> float | None:

@@ -80,6 +80,8 @@ class Tracker:
         if not os.path.exists(self.paths.pool_json):
             return False
         self.cfg = pool.read_config(self.paths)
+        # with the pool's key (if this host has it) forged or unsigned files are left out, as in status
+        pool.attach_key(self.paths, required=False)
         doc = status._read(self.paths.pool_json) or {}
         self.created = status._num(doc.get("created"))
         return True

@@ -161,6 +161,7 @@ def status(pool_dir: str) -> dict:
         "pool_size": cfg.pool_size,
         "env": cfg.env,
         "config": cfg.to_json(),
+        "verified": verified,
         "created": created,
         "versions": recorded_versions(doc),
         "iterations_completed": rows[-1]["iteration"] if rows else 0,
@@ -223,6 +224,9 @@ def format_table(st: dict, last: int = 10) -> str:
     """A status page a person reads at a glance."""
     lines = [f"pool {st['pool_dir']}  env {st['env']}  members {st['pool_size']}  "
              f"iterations completed {st['iterations_completed']}"]
+    if st.get("verified") is False:
+        lines.append("unverified: the pool's key was not found (--key-file's RL_POOL_KEY_FILE), "
+                     "so signatures were not checked")
     b = st["best"]
     lines.append("best: none yet" if b is None else
                  f"best: {b['eval_return']:.2f} (iteration {b['iteration']}, {describe(b)})")

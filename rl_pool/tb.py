@@ -133,7 +133,7 @@ class Board:
                 return 0
         except OSError:
             return 0
-        doc = _read(os.path.join(run, MARK)) or {}
+        doc = _read(self.paths, os.path.join(run, MARK)) or {}
         k = doc.get("through")
         return k if isinstance(k, int) and not isinstance(k, bool) and k >= 0 else 0
 
@@ -202,9 +202,9 @@ class Board:
             self.best = self._best_before(first)
         for i in range(first, upto + 1):
             sel = pool.read_selected(self.paths, i)
-            metrics = _read(self.paths.deposit_json(i, self.member))
-            if metrics is not None and metrics.get("iteration") == i and metrics.get("member") == self.member:
-                wait = (_read(self.paths.wait_json(i, self.member)) or {}).get("wait_seconds")
+            metrics = self._deposit(i)
+            if metrics is not None:
+                wait = (_read(self.paths, self.paths.wait_json(i, self.member)) or {}).get("wait_seconds")
                 won = None if sel is None else (sel.get("winner", "branch") == "branch"
                                                 and sel.get("member") == self.member)
                 self._write(self.runs[0], i, member_scalars(metrics, wait, won), _num(metrics.get("time")))
@@ -219,9 +219,14 @@ class Board:
         prev = pool.read_selected(self.paths, first - 1) or {}
         if isinstance(prev.get("best"), dict):
             return _num(prev["best"].get("eval_return"))
-        b = _read(self.paths.best_json) or {}
+        b = _read(self.paths, self.paths.best_json, signed=True) or {}
         it = b.get("iteration")
         return _num(b.get("eval_return")) if isinstance(it, int) and it < first else None
+
+    def _deposit(self, i: int) -> dict | None:
+        """This member's metrics of iteration ``i`` from its deposit (a key holder's only)."""
+        doc = _read(self.paths, self.paths.deposit_json(i, self.member), signed=True)
+        return doc if doc is not None and doc.get("iteration") == i and doc.get("member") == self.member else None
 
     def record(self, i: int, sel: dict, metrics: dict | None, wait_seconds: float | None) -> None:
         """Iteration ``i`` after its barrier: ``sel`` its selection, ``metrics`` this member's deposit
@@ -232,7 +237,7 @@ class Board:
         if not self.writers:
             self._catch_up(i - 1)
         if metrics is None:
-            metrics = _read(self.paths.deposit_json(i, self.member))
+            metrics = self._deposit(i)
         if metrics is not None:
             won = sel.get("winner", "branch") == "branch" and sel.get("member") == self.member
             self._write(self.runs[0], i, member_scalars(metrics, wait_seconds, won), _num(metrics.get("time")))
@@ -284,9 +289,13 @@ class Board:
         self.close()
 
 
-def _read(path: str) -> dict | None:
+def _read(paths: pool.Paths, path: str, signed: bool = False) -> dict | None:
+    """A JSON object of the pool, read as members read them (bounded, no links); with ``signed``,
+    None unless a key holder wrote it."""
     try:
-        doc = fsutil.read_json(path)
+        doc = paths.read_json(path)
     except (OSError, ValueError):
         return None
-    return doc if isinstance(doc, dict) else None
+    if not isinstance(doc, dict) or (signed and paths.why_unsigned(doc)):
+        return None
+    return doc

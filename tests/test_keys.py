@@ -88,3 +88,51 @@ def test_a_special_file_is_not_read_as_a_key(home):
     os.symlink("/dev/zero", home / "zero.key")
     with pytest.raises(UsageError, match="cannot read"):
         keys.load("x", "0", key_file=str(home / "zero.key"))  # symlinks are not followed
+
+
+@pytest.mark.multiprocess
+def test_forged_deposits_and_selections_are_never_adopted_in_a_live_pool(tmp_path):
+    """An attacker with write access but no key plants a winning deposit and selections created
+    before the honest members decide: none is adopted, and the pool completes."""
+    import time
+
+    import numpy as np
+
+    from rl_pool import pool
+
+    from .conftest import SHORT, spawn
+    from .helpers import agent
+
+    d = tmp_path / "pool"
+    procs = [spawn("train", "--pool-dir", d, "--pool-size", 3, "--member", m, "--iterations", 4, *SHORT,
+                   "--quorum", 2, "--heartbeat-timeout", 1, "--quiet") for m in (0, 1)]
+    deadline = time.time() + 60
+    while not (d / "iterations/000000/selected.json").exists() and time.time() < deadline:
+        time.sleep(0.01)
+    evil = agent(7)
+    data = evil.to_bytes()
+    sha = hashlib.sha256(data).hexdigest()
+    for i in range(1, 5):
+        it = d / f"iterations/{i:06d}"
+        it.mkdir(parents=True, exist_ok=True)
+        (it / "member-002.npz").write_bytes(data)
+        (it / "member-002.json").write_text(json.dumps(
+            {"iteration": i, "member": 2, "eval_return": 1e12, "eval_score": 1e12, "agent_sha256": sha,
+             "signature": "0" * 64}))
+        if i >= 2:  # a selection of the future, in place before anyone decides
+            (it / "selected.json").write_text(json.dumps(
+                {"iteration": i, "member": 2, "winner": "branch", "eval_return": 1e12, "score": 1e12,
+                 "agent": f"iterations/{i:06d}/member-002.npz", "agent_sha256": sha, "considered": [],
+                 "skipped": []}))
+    for p in procs:
+        _, err = p.communicate(timeout=240)
+        assert p.returncode == 0, err
+    paths = pool.Paths(d)
+    assert pool.attach_key(paths)
+    for i in range(1, 5):
+        sel = json.loads((d / f"iterations/{i:06d}/selected.json").read_text())
+        assert paths.key.verify(sel) and sel["agent_sha256"] != sha and sel["member"] != 2
+        (skip,) = sel["skipped"]
+        assert skip["member"] == 2 and "not written by a key holder" in skip["reason"]
+    assert not np.array_equal(pool.load_selected_agent(paths, 4).params["w"], evil.params["w"])
+    assert json.loads((d / "best.json").read_text())["agent_sha256"] != sha

@@ -75,9 +75,7 @@ def test_two_member_pool_end_to_end(reference):
         else:  # --lr-adapt 2: the loser of i-1 takes the winner's rate x2 or /2, the winner keeps its own
             prev_winner, prev_deps = hist[i - 2][0], hist[i - 2][3]
             for m in (0, 1):
-                if prev_winner is None:  # the parent won: nobody lost to a branch, rates stay
-                    assert deps[m][3] == prev_deps[m][3]
-                elif m == prev_winner:
+                if prev_winner is None or m == prev_winner:  # the parent won: nobody lost to a branch, rates stay
                     assert deps[m][3] == prev_deps[m][3]
                 else:
                     assert deps[m][3] / prev_deps[prev_winner][3] in (pytest.approx(2.0), pytest.approx(0.5))

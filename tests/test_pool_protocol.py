@@ -87,7 +87,7 @@ def test_selection_is_argmax_over_valid_deposits(tmp_path):
 
 
 def test_stray_files_are_ignored_and_temp_files_never_count(tmp_path):
-    paths, cfg = make_pool(tmp_path / "p", pool_size=2)
+    paths, _cfg = make_pool(tmp_path / "p", pool_size=2)
     d = paths.iteration(1)
     os.makedirs(d)
     for name in ["member-007.json", "member-1.json", "member-0001.json", "notes.txt", "member-000.json.bak",
@@ -161,7 +161,7 @@ def test_first_selection_written_wins(tmp_path):
 
 
 def test_selection_pointing_outside_the_pool_is_refused(tmp_path):
-    paths, cfg = make_pool(tmp_path / "p", pool_size=1)
+    paths, _cfg = make_pool(tmp_path / "p", pool_size=1)
     with pytest.raises(ValueError, match="outside"):
         paths.resolve("../../etc/passwd")
 
@@ -204,7 +204,7 @@ def test_atomic_write_leaves_no_temp_and_create_exclusive_is_once(tmp_path):
 
 
 def test_liveness_judges_change_not_clocks(tmp_path):
-    paths, cfg = make_pool(tmp_path / "p", pool_size=2)
+    paths, _cfg = make_pool(tmp_path / "p", pool_size=2)
     live = pool.Liveness(paths, timeout=0.2)
     assert live.stale(1) is None  # never seen: not stale until the timeout passes
     import time

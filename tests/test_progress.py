@@ -68,10 +68,10 @@ def fake_pool(root, returns_by_iteration, pool_size=2, **kw):
 
 
 def heartbeat(paths, m, state, iteration, target=20, last_return=None, **extra):
-    fsutil.write_json(paths.heartbeat(m), {"member": m, "pid": os.getpid(), "host": pool.HOST, "beat": 1,
-                                           "state": state, "iteration": iteration, "target": target,
-                                           "learning_rate": 0.01 * 10 ** m, "last_return": last_return,
-                                           "time": time.time(), **extra})
+    fsutil.write_json(paths.heartbeat(m), _sign(paths, {
+        "member": m, "pid": os.getpid(), "host": pool.HOST, "beat": 1, "state": state, "iteration": iteration,
+        "target": target, "learning_rate": 0.01 * 10 ** m, "last_return": last_return, "time": time.time(),
+        **extra}))
 
 
 HISTORY = [[10.0, 12.0], [15.0, 11.0], ([14.0, 13.0], "parent", 15.5), [20.0, 25.0], [24.0, 19.0]]
