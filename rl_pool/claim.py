@@ -49,12 +49,23 @@ Why not the obvious primitives
 
 Readers accept only a complete, verified decision: ``data`` starts with one
 line ``rl-pool-once 1 sha256=HEX size=N by=TOKEN`` and the payload must
-match it. ``TOKEN`` names the proposal, so a proposer whose rename reply
-was lost (an NFS retransmission answers ``ENOENT`` or ``ENOTEMPTY`` for a
-rename that happened) still learns that it won. An empty ``.NAME.once``
-directory (a stray ``mkdir``; a SeaweedFS filer that crashed in the middle of
-moving a directory's entries) decides nothing, and the next proposal's
-rename replaces it (renaming onto an empty directory is allowed).
+match it, and pass the caller's own check (``accept``: the pool's HMAC
+signature, :mod:`rl_pool.keys`). ``TOKEN`` names the proposal, so a proposer
+whose rename reply was lost (an NFS retransmission answers ``ENOENT`` or
+``ENOTEMPTY`` for a rename that happened) still learns that it won.
+
+Things that decide nothing never wedge a decision, and are never removed
+(an honest member may be reading them, and only the server can say what it
+holds now): a decision has ordered slots ``.NAME.once``, ``.NAME.once.1``,
+... up to :data:`MAX_SLOTS`. The decision is the first valid slot. A slot
+held by something invalid (a file, a link, a FIFO, a bad header, a forged
+signature) is passed over by everyone, and proposals go to the next slot;
+so is a directory that stays without readable ``data`` for ``wait``
+seconds. Proposers walk the slots in the same order and never pass over an
+empty one, so every member stops at the same slot. An empty ``.NAME.once``
+directory (a stray ``mkdir``; a SeaweedFS filer that died in the middle of
+moving a directory's entries) is simply replaced by the next proposal's
+rename (renaming onto an empty directory is allowed).
 
 After the decision, the plain file ``NAME`` is published: the winner writes
 it (temp file, fsync, ``os.replace``), and anyone who finds it missing writes
@@ -96,24 +107,30 @@ _MAYBE_DECIDED = {errno.ENOTEMPTY, errno.EEXIST, errno.ENOENT, errno.EIO, errno.
 
 
 class InvalidDecision(ValueError):
-    """A decision directory whose ``data`` does not verify: no rl-pool member wrote it
-    (they write it whole before the rename), so it decides nothing."""
+    """A decision whose ``data`` does not verify (or that ``accept`` rejects): it decides nothing."""
 
 
 class ClaimError(RuntimeError):
-    """A decision could not be made or read (its name stays occupied by something that is not
-    a readable decision)."""
+    """No decision could be made or read: every slot is occupied by things that decide nothing,
+    or a slot stayed unreadable for longer than the wait."""
 
 
-def decision_dir(path) -> str:
-    """``DIR/.NAME.once``: the directory that holds the decision about ``DIR/NAME``."""
+#: Ordered slots of one decision: ``.NAME.once``, then ``.NAME.once.1``, ... (see below).
+MAX_SLOTS = 16
+
+
+def decision_dir(path, slot: int = 0) -> str:
+    """``DIR/.NAME.once`` (slot 0) or ``DIR/.NAME.once.K``: where the decision about ``DIR/NAME`` is."""
     d, base = os.path.split(os.path.abspath(os.fspath(path)))
-    return os.path.join(d, f".{base}{SUFFIX}")
+    return os.path.join(d, f".{base}{SUFFIX}" + (f".{slot}" if slot else ""))
 
 
 def is_decision_dir(name: str) -> bool:
-    """True for ``.NAME.once`` (not for a proposal ``.NAME.once.tmp-...``)."""
-    return name.startswith(".") and name.endswith(SUFFIX) and not fsutil.is_tmp(name)
+    """True for ``.NAME.once`` and ``.NAME.once.K`` (not for a proposal ``....tmp-...``)."""
+    if not name.startswith(".") or fsutil.is_tmp(name):
+        return False
+    head, _, tail = name.rpartition(".")
+    return name.endswith(SUFFIX) or (tail.isdigit() and head.endswith(SUFFIX))
 
 
 def _token() -> str:
@@ -145,73 +162,103 @@ def unwrap(raw: bytes, where: str = "decision") -> tuple[bytes, str]:
     return payload, token
 
 
-def _read(path: str, root, cap: int) -> tuple[bytes, str] | None:
-    f = os.path.join(decision_dir(path), DATA)
+# What one slot holds: ("absent",), ("pending",) (a directory without readable data yet),
+# ("invalid", reason) or ("valid", payload, token).
+def _slot(path: str, k: int, root, cap: int, accept) -> tuple:
+    d = decision_dir(path, k)
+    f = os.path.join(d, DATA)
     try:
         raw = fsutil.read_bytes(f, cap + _HEADER_MAX, root=root)
     except (FileNotFoundError, NotADirectoryError):
-        # No decision yet; or (SeaweedFS) a directory rename still moving its entries.
-        return None
-    return unwrap(raw, f)
+        try:
+            st = os.lstat(d)
+        except FileNotFoundError:
+            return ("absent",)
+        except OSError as exc:
+            return ("invalid", f"{d}: {exc.strerror or exc}")
+        if stat.S_ISDIR(st.st_mode):
+            return ("pending",)  # SeaweedFS still moving a renamed directory's entries; or junk
+        return ("invalid", f"{d} is not a directory")
+    except UnsafeFile as exc:
+        return ("invalid", f"{f}: {exc.strerror}")
+    try:
+        payload, token = unwrap(raw, f)
+    except InvalidDecision as exc:
+        return ("invalid", str(exc))
+    why = accept(payload) if accept is not None else None
+    if why:
+        return ("invalid", f"{f}: {why}")
+    return ("valid", payload, token)
 
 
-def read_once(path, root=None, cap: int = MAX_BYTES) -> bytes | None:
+def read_once(path, root=None, cap: int = MAX_BYTES, accept=None) -> bytes | None:
     """The decided bytes for ``path``, or None while nothing is decided.
 
     ``root``: the pool directory, so the read never goes through a symbolic link
-    (:func:`rl_pool.fsutil.read_bytes`). Raises :class:`InvalidDecision` for a
-    decision that does not verify and :class:`~rl_pool.errors.UnsafeFile` for one
-    that is not a regular file, is reached through a link, or is too large.
+    (:func:`rl_pool.fsutil.read_bytes`). ``accept(payload) -> reason or None``: the
+    caller's own check (a signature); a decision it rejects counts as invalid.
+    Slots are read in order: the first valid one is the decision; invalid ones (and
+    ones still being written) are passed over; an absent one ends the search.
     """
-    got = _read(os.fspath(path), root, cap)
-    return None if got is None else got[0]
+    path = os.fspath(path)
+    for k in range(MAX_SLOTS):
+        got = _slot(path, k, root, cap, accept)
+        if got[0] == "valid":
+            return got[1]
+        if got[0] == "absent":
+            return None
+    return None
 
 
-def create_once(path, data: bytes, root=None, wait: float = 120.0,
-                cap: int = MAX_BYTES) -> tuple[bytes, bool]:
+def create_once(path, data: bytes, root=None, wait: float = 120.0, cap: int = MAX_BYTES,
+                accept=None) -> tuple[bytes, bool]:
     """Decide ``path`` once: ``(the decided bytes, whether this call decided them)``.
 
-    If a decision exists, it is returned (and ``path`` published if missing);
-    else ``data`` is proposed, and either it wins or the winner's bytes are
-    read back. ``wait``: how long to wait for a decision that another client
-    has made to become readable here (SeaweedFS: milliseconds; NFS: up to the
-    directory attribute cache time, see docs/cluster.md). Raises
-    :class:`ClaimError` when the name stays occupied by something unreadable,
-    :class:`InvalidDecision` when it holds a decision that does not verify.
+    If a decision exists, it is returned (and the plain copy ``path`` published if
+    missing); else ``data`` is proposed, and either it wins or the winner's bytes
+    are returned. ``accept`` as for :func:`read_once`. ``wait``: how long a slot
+    that exists may stay unreadable here before it counts as invalid (SeaweedFS
+    shows a rename to another mount in milliseconds; an NFS client that cached
+    "no such file" may take up to ``acdirmax``, see docs/cluster.md). Raises
+    :class:`ClaimError` when all :data:`MAX_SLOTS` slots decide nothing.
     """
     path = os.fspath(path)
     if len(data) > cap:
         raise ValueError(f"{len(data)} bytes is more than the {cap}-byte cap of a decision")
-    final = decision_dir(path)
-    for _ in range(3):
-        try:
-            got = _read(path, root, cap)
-        except UnsafeFile:
-            if _clear(final, root):
-                continue
-            raise
-        if got is not None:
-            _publish(path, got[0], missing_only=True, root=root)
-            return got[0], False
-        token = _token()
-        err = _propose(final, envelope(data, token))
-        if err is None:
-            _fsync_dir(os.path.dirname(final))
-            _publish(path, data, root=root)
-            return data, True
-        if err.errno == errno.ENOTDIR and _clear(final, root):
-            continue  # a file, a link or a FIFO held the name: never a decision
-        if err.errno not in _MAYBE_DECIDED | {errno.ENOTDIR}:
-            raise OSError(err.errno, err.strerror, path)
-        got = _await(path, root, cap, wait)
-        if got is None:
-            raise ClaimError(f"{final} exists but holds no readable decision after {wait:.0f}s "
-                             f"(rename said: {err.strerror}); if no rl-pool member is writing it, "
-                             "remove it")
-        payload, by = got
-        _publish(path, payload, missing_only=True, root=root)
-        return payload, by == token
-    raise ClaimError(f"{final} keeps being occupied by things that are not decisions")
+    own = accept(data) if accept is not None else None
+    if own:
+        raise ValueError(f"the proposal for {path} fails its own check: {own}")
+    reasons, k, tries = [], 0, 0
+    while k < MAX_SLOTS:
+        got = _slot(path, k, root, cap, accept)
+        token = None
+        if got[0] in ("absent", "pending"):
+            # A rename replaces an empty directory (a stray mkdir, a SeaweedFS filer that died
+            # mid-rename) and fails on one with entries (an honest decision still arriving).
+            token = _token()
+            err = _propose(decision_dir(path, k), envelope(data, token))
+            if err is None:
+                _fsync_dir(os.path.dirname(os.path.abspath(path)))
+                _publish(path, data, root=root)
+                return data, True
+            if err.errno not in _MAYBE_DECIDED | {errno.ENOTDIR}:
+                raise OSError(err.errno, err.strerror, path)
+            got = _await(path, k, root, cap, accept, wait)  # someone else's (or ours, reply lost)
+        if got[0] == "valid":
+            _publish(path, got[1], missing_only=True, root=root)
+            return got[1], token is not None and got[2] == token
+        if got[0] == "absent":
+            # Never pass over an absent slot (readers stop there): propose in it again.
+            tries += 1
+            if tries > 3:
+                raise ClaimError(f"no decision for {path}: renames into {decision_dir(path, k)} fail "
+                                 "but nothing shows there")
+            continue
+        reasons.append(got[1] if got[0] == "invalid" else f"{decision_dir(path, k)} unreadable for {wait:.0f}s")
+        log.warning("%s: %s; deciding in the next slot", path, reasons[-1])
+        k += 1
+    raise ClaimError(f"no decision for {path}: all {MAX_SLOTS} slots hold things that decide nothing "
+                     f"(first: {reasons[0]})")
 
 
 def _propose(final: str, content: bytes) -> OSError | None:
@@ -230,32 +277,18 @@ def _propose(final: str, content: bytes) -> OSError | None:
         remove_proposal(prop)
 
 
-def _await(path: str, root, cap: int, wait: float) -> tuple[bytes, str] | None:
-    """Poll for a decision another client made until it is readable here (1 ms .. 100 ms apart)."""
+def _await(path: str, k: int, root, cap: int, accept, wait: float) -> tuple:
+    """Poll slot ``k`` until it is valid or invalid here (1 ms .. 100 ms apart), at most ``wait``
+    seconds. An absent slot is polled too: this client may not see yet what the server refused
+    our rename for (a cached "no such file")."""
     deadline = time.monotonic() + wait
     delay = 0.001
     while True:
-        got = _read(path, root, cap)
-        if got is not None or time.monotonic() >= deadline:
+        got = _slot(path, k, root, cap, accept)
+        if got[0] in ("valid", "invalid") or time.monotonic() >= deadline:
             return got
         time.sleep(delay)
         delay = min(delay * 2, 0.1)
-
-
-def _clear(final: str, root) -> bool:
-    """Move a non-directory (a file, a link, a FIFO: never a decision) off a decision's name;
-    True if the name may be free now. A directory is never moved: whatever it holds, a member
-    may have read it, so an invalid one stops the pool with its reason (denial of service is
-    what write access to a pool allows, DESIGN.md §8) instead of being replaced."""
-    try:
-        st = os.lstat(final)
-    except FileNotFoundError:
-        return True
-    if stat.S_ISDIR(st.st_mode):
-        return False
-    log.warning("removing %s: not a decision directory", final)
-    fsutil.set_aside(final, (st.st_dev, st.st_ino), root=root)
-    return True
 
 
 def _publish(path: str, payload: bytes, missing_only: bool = False, root=None) -> None:

@@ -378,11 +378,18 @@ def peer_race(d: str, rounds: int = 50, session: str = "default", timeout: float
         other = s.wait_for(f"result-{peer}", "result")
         s.put(f"done-{s.me}", {})
         finished = True
+        deadline = time.monotonic() + settle  # give the peer's done- file time to show here
+        while s.get(f"done-{peer}") is None and time.monotonic() < deadline:
+            time.sleep(0.01)
         summary = _summarize(rounds, {s.me: {"wins": wins, "sees": sees}, peer: other})
         return summary | {"me": s.me, "peer": peer}
     finally:
         if finished and s.get(f"done-{s.peer}") is not None:
             shutil.rmtree(s.root, ignore_errors=True)  # the peer is done with it too
+            try:
+                os.rmdir(os.path.dirname(s.root))  # .rl-pool-doctor, if no other session is there
+            except OSError:
+                pass
         elif not finished:
             for n in (f"ready-{s.me}", f"go-{s.me}"):
                 claim.remove_proposal(os.path.join(s.root, n))

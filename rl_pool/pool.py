@@ -517,6 +517,11 @@ def publish_selection(paths: Paths, selection: dict, by: int) -> tuple[dict, boo
         try:
             st = os.lstat(paths.selected(i))
             on_disk = paths.read_json(paths.selected(i), missing_retries=8)
+        except FileNotFoundError:
+            # Gone since our create failed: another member set a stranger's file aside (or an NFS
+            # client's negative lookup lags). Try to create it again.
+            time.sleep(0.01)
+            continue
         except UnsafeFile as exc:
             # Not a file any member writes (a FIFO, a directory, a link, a huge file): it holds
             # the name but decides nothing. Clear the name and create the selection.

@@ -8,7 +8,6 @@ import os
 import pytest
 
 from rl_pool import claim
-from rl_pool.errors import UnsafeFile
 
 
 def test_first_proposal_wins_and_later_ones_get_its_bytes(tmp_path):
@@ -58,8 +57,9 @@ def test_an_empty_decision_directory_is_undecided_and_gets_replaced(tmp_path):
     p = tmp_path / "selected.json"
     os.mkdir(claim.decision_dir(p))
     assert claim.read_once(p) is None
-    assert claim.create_once(p, b"decided") == (b"decided", True)
+    assert claim.create_once(p, b"decided", wait=5) == (b"decided", True)
     assert claim.read_once(p) == b"decided"
+    assert not os.path.exists(claim.decision_dir(p, 1))  # decided in the first slot itself
 
 
 @pytest.mark.parametrize("raw, why", [
@@ -68,45 +68,86 @@ def test_an_empty_decision_directory_is_undecided_and_gets_replaced(tmp_path):
     (b"something-else 1 sha256=00 size=3 by=x\nabc", "not an rl-pool decision"),
     (claim.envelope(b"abcdef", "x")[:-2], "does not match"),  # truncated
 ])
-def test_a_decision_that_does_not_verify_is_refused_with_its_reason(tmp_path, raw, why):
+def test_a_decision_that_does_not_verify_decides_nothing_and_the_next_slot_decides(tmp_path, raw, why,
+                                                                                  caplog):
     p = tmp_path / "selected.json"
     d = claim.decision_dir(p)
     os.mkdir(d)
     with open(os.path.join(d, "data"), "wb") as fh:
         fh.write(raw)
-    with pytest.raises(claim.InvalidDecision, match=why):
-        claim.read_once(p)
-    with pytest.raises(claim.InvalidDecision, match=why):
-        claim.create_once(p, b"mine")
-    assert not p.exists()  # nothing was published from it
+    assert claim.read_once(p) is None
+    assert claim.create_once(p, b"mine") == (b"mine", True)
+    assert why in caplog.text
+    assert claim.read_once(p) == b"mine" and p.read_bytes() == b"mine"
+    assert os.path.isdir(claim.decision_dir(p, 1))
+    with open(os.path.join(d, "data"), "rb") as fh:
+        assert fh.read() == raw  # never removed: only passed over
 
 
-def test_hostile_things_at_the_decision_are_refused_without_blocking(tmp_path):
+def test_hostile_things_at_the_decision_are_passed_over_without_blocking(tmp_path):
     p = tmp_path / "selected.json"
     d = claim.decision_dir(p)
     os.mkdir(d)
     os.mkfifo(os.path.join(d, "data"))
-    with pytest.raises(UnsafeFile, match="FIFO"):
-        claim.read_once(p, root=tmp_path)
-    os.unlink(os.path.join(d, "data"))
-    os.symlink("/etc/passwd", os.path.join(d, "data"))
-    with pytest.raises(UnsafeFile):
-        claim.read_once(p, root=tmp_path)
+    assert claim.read_once(p, root=tmp_path) is None
+    assert claim.create_once(p, b"one", root=tmp_path) == (b"one", True)
+    q = tmp_path / "other.json"
+    e = claim.decision_dir(q)
+    os.mkdir(e)
+    os.symlink("/etc/passwd", os.path.join(e, "data"))
+    assert claim.create_once(q, b"two", root=tmp_path) == (b"two", True)
+    assert claim.read_once(q, root=tmp_path) == b"two"
 
 
-def test_a_file_or_link_occupying_the_decision_name_is_moved_aside(tmp_path):
-    p = tmp_path / "selected.json"
-    for make in (lambda d: open(d, "wb").write(b"junk"), lambda d: os.symlink("/tmp", d),
-                 lambda d: os.mkfifo(d)):
-        d = claim.decision_dir(p)
-        make(d)
-        data, won = claim.create_once(p, b"decided", root=tmp_path)
-        assert (data, won) == (b"decided", True)
+def test_a_file_link_or_fifo_at_the_decision_name_is_passed_over(tmp_path):
+    for k, make in enumerate((lambda d: open(d, "wb").write(b"junk"), lambda d: os.symlink("/tmp", d),
+                              os.mkfifo)):
+        p = tmp_path / f"selected-{k}.json"
+        make(claim.decision_dir(p))
+        assert claim.read_once(p, root=tmp_path) is None
+        assert claim.create_once(p, b"decided", root=tmp_path) == (b"decided", True)
         assert claim.read_once(p, root=tmp_path) == b"decided"
-        import shutil
+        assert claim.create_once(p, b"late", root=tmp_path) == (b"decided", False)
 
-        shutil.rmtree(d)
-        p.unlink()
+
+def test_a_decision_the_callers_check_rejects_is_passed_over(tmp_path):
+    """A forger with write access but without the pool's key: a well-formed decision, badly signed."""
+    p = tmp_path / "selected.json"
+    forged = claim.decision_dir(p)
+    os.mkdir(forged)
+    with open(os.path.join(forged, "data"), "wb") as fh:
+        fh.write(claim.envelope(b'{"signed": false}', "stranger"))
+
+    def signed(payload):
+        return None if json.loads(payload)["signed"] else "not signed with the pool key"
+
+    assert claim.read_once(p, accept=signed) is None
+    assert claim.read_once(p) == b'{"signed": false}'  # without the check it would count
+    honest = b'{"signed": true}'
+    assert claim.create_once(p, honest, accept=signed) == (honest, True)
+    assert claim.create_once(p, b'{"signed": true, "x": 1}', accept=signed) == (honest, False)
+    assert claim.read_once(p, accept=signed) == honest
+    with pytest.raises(ValueError, match="own check"):
+        claim.create_once(tmp_path / "y", b'{"signed": false}', accept=signed)
+
+
+def test_a_directory_that_never_gets_its_data_is_passed_over_after_the_wait(tmp_path):
+    p = tmp_path / "selected.json"
+    d = claim.decision_dir(p)
+    os.mkdir(d)
+    (tmp_path / ".selected.json.once" / "junk").write_bytes(b"x")  # not empty: no rename replaces it
+    assert claim.read_once(p) is None
+    assert claim.create_once(p, b"decided", wait=0.2) == (b"decided", True)
+    assert claim.read_once(p) == b"decided"
+
+
+def test_when_every_slot_is_taken_by_junk_the_error_says_so(tmp_path, monkeypatch):
+    monkeypatch.setattr(claim, "MAX_SLOTS", 3)
+    p = tmp_path / "selected.json"
+    for k in range(3):
+        open(claim.decision_dir(p, k), "wb").close()
+    with pytest.raises(claim.ClaimError, match="all 3 slots"):
+        claim.create_once(p, b"x")
 
 
 def test_a_lost_rename_reply_still_reports_the_win(tmp_path, monkeypatch):
@@ -178,3 +219,76 @@ def test_special_things_at_the_plain_name_are_replaced_by_the_decided_copy(tmp_p
     os.mkfifo(q)  # a FIFO where the copy was: the next member writes the copy again
     assert claim.create_once(q, b"second", root=tmp_path) == (b"first", False)
     assert q.read_bytes() == b"first"
+
+
+# ---------------------------------------------------------------- doctor: the checks behind the decision
+def test_quick_check_finds_nothing_wrong_on_a_local_disk_and_leaves_nothing(tmp_path):
+    from rl_pool import doctor
+
+    assert doctor.quick_check(tmp_path) == []
+    assert os.listdir(tmp_path) == []
+
+
+def test_quick_check_refuses_a_filesystem_whose_directory_renames_replace(tmp_path, monkeypatch):
+    """What an object-store FUSE adapter does: a directory rename is a delete and a copy."""
+    import shutil
+
+    from rl_pool import doctor
+
+    real = os.rename
+
+    def clobbering_rename(src, dst, **kw):
+        if os.path.isdir(src) and os.path.isdir(dst):
+            shutil.rmtree(dst)
+        return real(src, dst, **kw)
+
+    monkeypatch.setattr(os, "rename", clobbering_rename)
+    problems = doctor.quick_check(tmp_path)
+    assert any("directory rename onto a non-empty directory" in p for p in problems), problems
+
+
+@pytest.mark.parametrize("fs, problem, note", [
+    ({"type": "fuse.s3fs", "options": "rw"}, "object store", None),
+    ({"type": "nfs4", "options": "rw,nocto,hard"}, "nocto", "lookupcache"),
+    ({"type": "nfs", "options": "rw,soft,lookupcache=positive"}, None, "'soft'"),
+    ({"type": "fuse.seaweedfs", "options": "rw"}, None, "SeaweedFS"),
+    ({"type": "ext4", "options": "rw"}, None, None),
+])
+def test_mount_options_that_matter_are_named(fs, problem, note):
+    from rl_pool import doctor
+
+    problems, notes = doctor.mount_notes(fs)
+    assert [p for p in problems if problem in p] if problem else problems == []
+    assert [n for n in notes if note in n] if note else notes == []
+
+
+def _doctor_peer(d: str, out) -> None:
+    from rl_pool import doctor
+
+    out.put(doctor.peer_race(d, rounds=10, timeout=60, settle=0.05))
+
+
+def test_doctor_peers_meet_race_and_agree_on_a_local_disk(tmp_path):
+    """Two doctor runs on one directory find each other, race, and print the same result: on a
+    local disk every primitive has exactly one winner."""
+    ctx = mp.get_context("spawn")
+    out = ctx.Queue()
+    procs = [ctx.Process(target=_doctor_peer, args=(str(tmp_path), out)) for _ in range(2)]
+    for p in procs:
+        p.start()
+    a, b = out.get(timeout=120), out.get(timeout=120)
+    for p in procs:
+        p.join(timeout=30)
+        assert p.exitcode == 0
+    assert {a["me"], a["peer"]} == {b["me"], b["peer"]} and a["primitives"] == b["primitives"]
+    assert all(p["exclusive"] and p["exactly_one"] == 10 for p in a["primitives"].values()), a
+    assert os.listdir(tmp_path) == []  # the meeting place is removed
+
+
+def test_doctor_command_prints_a_verdict(tmp_path, capsys):
+    from rl_pool import doctor
+
+    assert doctor.main([str(tmp_path)]) == 0
+    out = capsys.readouterr().out
+    assert "verdict: a pool can live here" in out and "directory rename onto a non-empty" in out
+    assert doctor.main([str(tmp_path / "missing")]) == 2

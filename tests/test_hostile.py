@@ -329,7 +329,9 @@ def _plant(d, tmp_path) -> list:
     os.mkfifo(it[1] / "member-002.json")
     (it[1] / "member-002.npz").symlink_to("/dev/zero")
     (it[1] / "member-002.wait.json").symlink_to("/dev/zero")
-    # 2: valid-looking metrics, agent a sparse terabyte; its selection's name taken by a directory
+    # 2: valid-looking metrics without the key's signature, agent a sparse terabyte (a signed deposit
+    # with such an agent is refused by its size cap: test_hostile_deposits_are_skipped_with_their_reason);
+    # its selection's name taken by a directory
     (it[2] / "member-002.json").write_text(json.dumps(
         {"iteration": 2, "member": 2, "eval_return": 1e12, "agent_sha256": "0" * 64}))
     with open(it[2] / "member-002.npz", "wb") as fh:
@@ -398,7 +400,7 @@ def test_special_files_everywhere_in_a_live_pool(tmp_path):
                 p.communicate()
         for s in sockets:
             s.close()
-    reasons = {1: "FIFO", 2: "cap", 3: "missing", 4: "directory", 5: "socket"}
+    reasons = {1: "FIFO", 2: "unsigned", 3: "missing", 4: "directory", 5: "socket"}
     for i in range(1, 6):
         sel = json.loads((d / f"iterations/{i:06d}/selected.json").read_text())
         assert sel["winner"] in ("branch", "parent") and sel["member"] in (0, 1, None)
