@@ -22,4 +22,45 @@ for p in ("numpy", "jax", "jaxlib", "mujoco", "gymnasium", "rl-pool"):
 PY
 { echo "# $(date -u +%F): made on the 2-core development machine with the versions in versions.txt"; echo "$CMD";
   echo "# exported with:"; echo "results/collect.sh $POOL $TASK '...'"; } > "$OUT/command.txt"
+"$HERE/.venv/bin/python" - "$OUT" "$TASK" "$CMD" <<'PY'
+import csv, json, sys
+out, task, cmd = sys.argv[1:4]
+rows = list(csv.DictReader(open(f"{out}/history.csv")))
+res = json.load(open(f"{out}/rescore.json"))
+pool = json.load(open(f"{out}/pool.json"))
+best = json.load(open(f"{out}/best.json"))
+def at(minutes):
+    b, steps = None, None
+    for r in rows:
+        if r["elapsed_seconds"] and float(r["elapsed_seconds"]) <= 60 * minutes and r["eval_return"]:
+            v = float(r["eval_return"])
+            if b is None or v > b:
+                b = v
+            steps = int(r["env_steps"])
+    return ("—", "—") if b is None else (f"{b:.1f}", f"{steps / 1e6:.2f} M")
+end = float(rows[-1]["elapsed_seconds"])
+cols = [m for m in (5, 10, 20) if m * 60 <= end + 30]
+wins = {}
+for r in rows:
+    wins[r["winner"]] = wins.get(r["winner"], 0) + 1
+vers = open(f"{out}/versions.txt").read().strip().replace("\n", ", ")
+lines = [f"# {pool['env']}: {task}", "",
+         "Everything here comes from one real run on the 2-core development machine (one root seed,",
+         f"seed {pool['seed']}); nothing was edited by hand. Versions: {vers}.", "",
+         "Command (see command.txt):", "", "```", cmd, "```", "",
+         "| best selected return (3 deterministic evaluation episodes) by | " + " | ".join(f"{m} min" for m in cols) + " |",
+         "|---|" + "---|" * len(cols),
+         "| return | " + " | ".join(at(m)[0] for m in cols) + " |",
+         "| env steps so far (all members, training + evaluation) | " + " | ".join(at(m)[1] for m in cols) + " |", "",
+         f"The run was stopped after {end / 60:.1f} minutes ({len(rows)} iterations; winners: "
+         + ", ".join(f"{k} {v}" for k, v in sorted(wins.items())) + ").",
+         f"`best.npz` is the best selected agent (iteration {best['iteration']}, evaluation return "
+         f"{best['eval_return']:.1f}); re-scored on {res['episodes']} fresh episodes (reset seeds 1000000+k, "
+         f"deterministic Beta mean): **{res['mean_return']:.1f} ± {res['std_return']:.1f}** "
+         f"(min {min(res['returns']):.1f}, max {max(res['returns']):.1f}).", "",
+         "Files: `history.csv` (per iteration: winner, returns, wall time, env steps), `progress.png`",
+         "(`rl-pool plot`), `best.npz`/`best.json`, `pool.json` (the exact pool config and versions),",
+         "`rescore.json` (`rl-pool evaluate --episodes 50 --json`), `versions.txt`, `command.txt`."]
+open(f"{out}/README.md", "w").write("\n".join(lines) + "\n")
+PY
 echo "$OUT: $(python3 -c "import json,sys; d=json.load(open('$OUT/rescore.json')); print(f\"re-score {d['mean_return']:.1f} ± {d['std_return']:.1f} over {d['episodes']} episodes\")")"

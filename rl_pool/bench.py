@@ -49,42 +49,55 @@ def _plain_loop(env_id: str, steps: int, unwrapped: bool, constant: bool = False
 
 
 def throughput(args) -> None:
-    """Plain gymnasium random-action loop vs one member's training (gradient included)."""
+    """One member's training throughput vs the environment's own cost, interleaved in one run;
+    with ``--policy mlp`` the linear member is measured in the same rounds, for the ratio."""
     from . import envs, learner, trainer
     from .config import PoolConfig
     from .member import make_initial
 
     learner.enable_compilation_cache()
-    cfg, _ = PoolConfig(env=args.env).validate(), None
-    agent, cfg = make_initial(cfg)
-    env_list = [envs.make(cfg.env)[0] for _ in range(max(cfg.batch_episodes, cfg.eval_episodes))]
-    t0 = time.perf_counter()
-    first = trainer.train(agent, env_list, cfg, 0.1, 0, 1)
-    cold = first.steps / (time.perf_counter() - t0)
-    agent = first.agent
-    plain, raw, bare, member = [], [], [], []
+    kinds = ["linear"] + (["mlp"] if args.policy == "mlp" else [])
+    setups = {}
+    for kind in kinds:
+        cfg = PoolConfig(env=args.env, policy=kind, hidden=args.hidden).validate()
+        agent, cfg = make_initial(cfg)
+        env_list = [envs.make(cfg.env)[0] for _ in range(max(cfg.batch_episodes, cfg.eval_episodes))]
+        t0 = time.perf_counter()
+        first = trainer.train(agent, env_list, cfg, 0.1, 0, 1)
+        setups[kind] = {"cfg": cfg, "agent": first.agent, "envs": env_list, "rates": [],
+                        "cold": first.steps / (time.perf_counter() - t0)}
+    plain, raw, bare = [], [], []
     for rep in range(args.repeats):
-        plain.append(_plain_loop(cfg.env, args.steps, unwrapped=False))
-        raw.append(_plain_loop(cfg.env, args.steps, unwrapped=True))
-        bare.append(_plain_loop(cfg.env, args.steps, unwrapped=True, constant=True))
-        steps = secs = 0.0
-        while steps < args.steps:
-            r = trainer.train(agent, env_list, cfg, 0.1, 0, 2 + rep)
-            agent = r.agent
-            steps += r.steps
-            secs += r.seconds
-        member.append(steps / secs)
-    p, u, z, m = (statistics.median(x) for x in (plain, raw, bare, member))
-    print(f"env {cfg.env}: {cfg.batch_episodes} envs in lockstep, {cfg.train_episodes} episodes per "
-          f"iteration, median of {args.repeats} rounds of {args.steps} steps")
+        plain.append(_plain_loop(args.env, args.steps, unwrapped=False))
+        raw.append(_plain_loop(args.env, args.steps, unwrapped=True))
+        bare.append(_plain_loop(args.env, args.steps, unwrapped=True, constant=True))
+        for su in setups.values():
+            steps = secs = 0.0
+            while steps < args.steps:
+                r = trainer.train(su["agent"], su["envs"], su["cfg"], 0.1, 0, 2 + rep)
+                su["agent"] = r.agent
+                steps += r.steps
+                secs += r.seconds
+            su["rates"].append(steps / secs)
+    p, u, z = (statistics.median(x) for x in (plain, raw, bare))
+    lin = setups["linear"]
+    m = statistics.median(lin["rates"])
+    print(f"env {args.env}: {lin['cfg'].batch_episodes} envs in lockstep, {lin['cfg'].train_episodes} episodes "
+          f"per iteration, median of {args.repeats} rounds of {args.steps} steps")
     print(f"  plain gymnasium env.step loop, random actions   {p:9.0f} steps/s")
     print(f"  same, on env.unwrapped (no wrappers)            {u:9.0f} steps/s")
     print(f"  env.unwrapped, constant action (env cost only)  {z:9.0f} steps/s")
-    print(f"  one member's training (rollouts + gradients)    {m:9.0f} steps/s")
-    print(f"  first iteration incl. JIT compile               {cold:9.0f} steps/s")
-    print(f"  ratio member / plain loop                       {m / p:9.2f}   (target >= 0.9)")
-    print(f"  ratio member / unwrapped loop                   {m / u:9.2f}")
-    print(f"  ratio member / env cost only                    {m / z:9.2f}")
+    print(f"  one linear member's training                    {m:9.0f} steps/s")
+    print(f"  first iteration incl. JIT compile               {lin['cold']:9.0f} steps/s")
+    print(f"  ratio linear member / plain loop                {m / p:9.2f}")
+    print(f"  ratio linear member / unwrapped loop            {m / u:9.2f}")
+    print(f"  ratio linear member / env cost only             {m / z:9.2f}   (target >= 0.9)")
+    if "mlp" in setups:
+        mlp = setups["mlp"]
+        mm = statistics.median(mlp["rates"])
+        print(f"  one {mlp['cfg'].spec.describe()} member's training {mm:9.0f} steps/s")
+        print(f"  first iteration incl. JIT compile               {mlp['cold']:9.0f} steps/s")
+        print(f"  ratio mlp member / linear member                {mm / m:9.2f}   (target >= 0.8)")
 
 
 def _run_pool(root: str, n: int, iterations: int, extra: list[str]) -> dict:
@@ -356,6 +369,8 @@ def main(argv=None) -> None:
     t.add_argument("--env", default="Swimmer-v5")
     t.add_argument("--steps", type=int, default=40000)
     t.add_argument("--repeats", type=int, default=3)
+    t.add_argument("--policy", default="linear", choices=("linear", "mlp"))
+    t.add_argument("--hidden", default="64,64", help="MLP hidden sizes (with --policy mlp)")
     t.set_defaults(func=throughput)
     s = sub.add_parser("scaling")
     s.add_argument("--env", default="Swimmer-v5")

@@ -210,6 +210,22 @@ def read_once(path, root=None, cap: int = MAX_BYTES, accept=None) -> bytes | Non
     return None
 
 
+def why_undecided(path, root=None, cap: int = MAX_BYTES, accept=None) -> str | None:
+    """Why :func:`read_once` finds no decision although something occupies the first slot
+    (for error messages: "a FIFO, not a regular file"), or None."""
+    path = os.fspath(path)
+    first = None
+    for k in range(MAX_SLOTS):
+        got = _slot(path, k, root, cap, accept)
+        if got[0] == "valid":
+            return None
+        if got[0] == "absent":
+            return first
+        if got[0] == "invalid" and first is None:
+            first = got[1]
+    return first
+
+
 def create_once(path, data: bytes, root=None, wait: float = 120.0, cap: int = MAX_BYTES,
                 accept=None) -> tuple[bytes, bool]:
     """Decide ``path`` once: ``(the decided bytes, whether this call decided them)``.

@@ -90,7 +90,9 @@ def test_hostile_things_at_the_decision_are_passed_over_without_blocking(tmp_pat
     os.mkdir(d)
     os.mkfifo(os.path.join(d, "data"))
     assert claim.read_once(p, root=tmp_path) is None
+    assert "FIFO" in claim.why_undecided(p, root=tmp_path)
     assert claim.create_once(p, b"one", root=tmp_path) == (b"one", True)
+    assert claim.why_undecided(p, root=tmp_path) is None
     q = tmp_path / "other.json"
     e = claim.decision_dir(q)
     os.mkdir(e)
