@@ -361,6 +361,49 @@ def protocol(args) -> None:
         print(json.dumps(rows))
 
 
+def signing(args) -> None:
+    """What the pool key costs per member and iteration: HMAC-SHA256 over the JSON files a member
+    signs (its deposit, heartbeats, maybe the selection) and checks (N deposits, the selection)."""
+    import json as _json
+    import secrets
+
+    from .keys import Key
+
+    key = Key(secrets.token_bytes(32))
+    deposit = {"iteration": 123, "member": 1, "agent_sha256": "ab" * 32, "eval_return": 357.25,
+               "eval_returns": [355.1, 358.0, 358.6], "eval_score": 357.25, "learning_rate": 0.1,
+               "train_steps": 20000, "train_seconds": 2.31, "eval_seconds": 0.3, "parent_eval_return": 350.0,
+               "parent_sha256": "cd" * 32, "host": "node17", "pid": 4242, "time": 1.7e9}
+    doc = key.sign(deposit)
+    selection = key.sign({"iteration": 123, "member": 1, "winner": "branch", "agent_sha256": "ab" * 32,
+                          "considered": [{"member": m, "eval_return": 350.0 + m, "score": 350.0 + m}
+                                         for m in range(args.members)],
+                          "skipped": [], "parent": {"iteration": 122, "eval_return": 350.0}})
+    reps = args.repeats
+    t0 = time.perf_counter()
+    for _ in range(reps):
+        key.sign(deposit)
+    sign_us = (time.perf_counter() - t0) / reps * 1e6
+    t0 = time.perf_counter()
+    for _ in range(reps):
+        key.verify(_json.loads(_json.dumps(doc)))
+    verify_us = (time.perf_counter() - t0) / reps * 1e6
+    t0 = time.perf_counter()
+    for _ in range(reps):
+        key.verify(selection)
+    sel_us = (time.perf_counter() - t0) / reps * 1e6
+    n = args.members
+    # per iteration a member signs its deposit, one selection (at most) and ~2 heartbeats, and
+    # checks N deposits, the selection (a few times while waiting) and N heartbeats
+    per_iter = 4 * sign_us + n * verify_us + 3 * sel_us + n * verify_us
+    print(f"HMAC-SHA256 over canonical JSON, {reps} repetitions each")
+    print(f"  sign a deposit's metrics                  {sign_us:8.1f} us")
+    print(f"  parse + verify a deposit's metrics        {verify_us:8.1f} us")
+    print(f"  verify a selection of {n} members          {sel_us:8.1f} us")
+    print(f"  per member and iteration, pool of {n}      {per_iter:8.1f} us  "
+          f"({100 * per_iter / 1e6 / 2.5:.4f}% of a 2.5 s Swimmer iteration)")
+
+
 def main(argv=None) -> None:
     cap_threads()
     p = argparse.ArgumentParser(prog="python -m rl_pool.bench")
@@ -372,6 +415,10 @@ def main(argv=None) -> None:
     t.add_argument("--policy", default="linear", choices=("linear", "mlp"))
     t.add_argument("--hidden", default="64,64", help="MLP hidden sizes (with --policy mlp)")
     t.set_defaults(func=throughput)
+    g = sub.add_parser("signing")
+    g.add_argument("--members", type=int, default=16)
+    g.add_argument("--repeats", type=int, default=20000)
+    g.set_defaults(func=signing)
     s = sub.add_parser("scaling")
     s.add_argument("--env", default="Swimmer-v5")
     s.add_argument("--members", type=int, default=2)

@@ -160,3 +160,40 @@ def test_train_refuses_foreign_directory_untouched(tmp_path):
     proc = rl_pool("train", "--pool-dir", d, *SHORT)
     assert proc.returncode == 2 and "not an rl-pool pool" in proc.stderr
     assert os.listdir(d) == ["results.csv"]
+
+
+def test_hopper_preset_terminating_task_short_run(tmp_path):
+    """A terminating task through its preset: episodes end early, the shift shapes training only."""
+    d = tmp_path / "hopper"
+    rl_pool("train", "--pool-dir", d, "--preset", "hopper", "--member", 0, "--pool-size", 1,
+            "--learning-rate", 0.03, "--iterations", 3, "--max-episode-steps", 80, "--train-episodes", 4,
+            "--eval-episodes", 2, "--quiet", check=0)
+    cfg = json.loads((d / "pool.json").read_text())
+    assert (cfg["env"], cfg["reward_shift"], cfg["selection"], cfg["revert_after"]) == \
+        ("Hopper-v5", 1.0, "branches", 20)
+    assert cfg["batch_episodes"] == 4  # min(10, --train-episodes): no --batch-episodes needed
+    for i in (1, 2, 3):
+        dep = json.loads((d / f"iterations/{i:06d}/member-000.json").read_text())
+        lengths = dep["eval_lengths"]
+        assert all(1 <= n <= 80 for n in lengths) and dep["train_steps"] <= 4 * 80
+        # eval_return is the env's own return; eval_score takes the shift off every step
+        assert dep["eval_score"] == pytest.approx(dep["eval_return"] - np.mean(lengths))
+        sel = json.loads((d / f"iterations/{i:06d}/selected.json").read_text())
+        assert sel["winner"] == "branch" and sel["score"] == dep["eval_score"]
+    assert Agent.load(d / "best.npz").meta.env == "Hopper-v5"
+
+
+def test_halfcheetah_mlp_non_terminating_task_short_run(tmp_path):
+    d = tmp_path / "cheetah"
+    rl_pool("train", "--pool-dir", d, "--env", "HalfCheetah-v5", "--policy", "mlp", "--hidden", "16,8",
+            "--iterations", 2, "--max-episode-steps", 40, "--train-episodes", 2, "--eval-episodes", 2,
+            "--quiet", check=0)
+    for i in (1, 2):
+        dep = json.loads((d / f"iterations/{i:06d}/member-000.json").read_text())
+        assert dep["eval_lengths"] == [40, 40] and dep["train_steps"] == 2 * 40  # never terminates early
+    agent = Agent.load(d / "best.npz")
+    assert agent.spec.kind == "mlp" and agent.spec.hidden == (16, 8)
+    assert {k: v.shape for k, v in agent.params.items()} == {
+        "w0": (17, 16), "b0": (16,), "w1": (16, 8), "b1": (8,), "w2": (8, 12), "b2": (12,)}
+    st = json.loads(rl_pool("status", d, "--json", check=0).stdout)
+    assert st["config"]["policy"] == "mlp" and st["iterations_completed"] == 2
