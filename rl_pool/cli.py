@@ -259,6 +259,10 @@ def build_parser() -> argparse.ArgumentParser:
     rp.add_argument("--height", type=int, default=360)
     rp.add_argument("--camera", default=None, help="a camera of the model (default: 'track' if it has one)")
     rp.set_defaults(func=cmd_replay)
+
+    from . import doctor
+
+    doctor.add_parser(sub)
     return p
 
 

@@ -15,7 +15,7 @@ from dataclasses import MISSING, asdict, dataclass, field, fields
 from .errors import UsageError
 
 #: 2: policy family (policy/hidden/link), parent in the selection, reward shift.
-PROTOCOL = 2
+PROTOCOL = 3  # 3: create-once decisions in .NAME.once/ (rl_pool.claim)
 
 
 def opt(default, help: str, choices=None, **kw):

@@ -9,20 +9,25 @@ of immutable, atomically written files::
     iterations/000007/member-002.npz member 2's agent after training in iteration 7
     iterations/000007/member-002.json its metrics: written last, marks the deposit done
     iterations/000007/member-002.wait.json  its time at the barrier (known only after it)
-    iterations/000007/selected.json  the winner and why (create-once: first writer wins)
+    iterations/000007/selected.json  the winner and why (create-once: the first decision stands)
     best.npz, best.json              best selected agent so far
     members/member-002.json          heartbeat
     logs/member-002.log              log
 
-``selected.json`` is created with an atomic link, so if two members ever
-disagree (one went on with a quorum while a late deposit landed) the first
-writer's decision stands and everyone adopts it.
+``pool.json``, ``initial.npz`` and each ``selected.json`` are decided once with
+:func:`rl_pool.claim.create_once`: the decision is ``.NAME.once/data`` (a
+complete directory renamed into place: exclusive on local disks, NFS, Lustre,
+GPFS and SeaweedFS alike, where ``link`` is not) and ``NAME`` its published
+copy for people and tools. If two members ever disagree (one went on with a
+quorum while a late deposit landed) the first decision stands and everyone
+adopts it; members read decisions, never the copies.
 """
 
 from __future__ import annotations
 
 import errno
 import hashlib
+import json
 import logging
 import math
 import os
@@ -33,7 +38,7 @@ import threading
 import time
 from dataclasses import dataclass
 
-from . import fsutil
+from . import claim, fsutil
 from .agent import Agent, max_file_bytes
 from .config import PROTOCOL, OldProtocol, PoolConfig
 from .errors import AgentFileError, UnsafeFile, UsageError
@@ -65,6 +70,7 @@ class Paths:
         self.logs = os.path.join(self.root, "logs")
         self.best_npz = os.path.join(self.root, "best.npz")
         self.best_json = os.path.join(self.root, "best.json")
+        self._legacy: bool | None = None
 
     def iteration(self, i: int) -> str:
         return os.path.join(self.iterations, f"{i:06d}")
@@ -105,6 +111,31 @@ class Paths:
         """None if ``doc`` may decide something here, else why not (unsigned, bad signature)."""
         return None if self.key is None else self.key.why_invalid(doc)
 
+    def signed(self, payload: bytes) -> str | None:
+        """``accept`` for :mod:`rl_pool.claim`: why a decided JSON document may not decide here."""
+        try:
+            doc = json.loads(payload.decode("utf-8"))
+        except ValueError:
+            return "not JSON"
+        return self.why_unsigned(doc)
+
+    def decision(self, path: str, cap: int = fsutil.JSON_MAX_BYTES, signed: bool = True) -> bytes | None:
+        """The decided bytes of ``path`` (``pool.json``, ``initial.npz``, ``selected.json``), or None.
+        In a pool made before decisions (protocol 2: ``pool.json`` without ``.pool.json.once``),
+        the plain file, for readers such as ``status`` (members refuse such pools)."""
+        data = claim.read_once(path, root=self.root, cap=cap, accept=self.signed if signed else None)
+        if data is None and self.legacy():
+            try:
+                data = self.read_bytes(path, cap)
+            except FileNotFoundError:
+                return None
+        return data
+
+    def legacy(self) -> bool:
+        if self._legacy is None:
+            self._legacy = os.path.exists(self.pool_json) and not os.path.isdir(claim.decision_dir(self.pool_json))
+        return self._legacy
+
     def read_json(self, path: str, missing_retries: int = 0):
         """A JSON file of this pool, read bounded and never through a link (:mod:`rl_pool.fsutil`)."""
         return fsutil.read_json(path, missing_retries=missing_retries, root=self.root)
@@ -126,10 +157,17 @@ def read_config(paths: Paths) -> PoolConfig:
     """The saved pool config; UsageError if the directory is not an rl-pool pool."""
     if not os.path.isdir(paths.root):
         raise UsageError(f"no pool directory at {paths.root}")
-    if not os.path.exists(paths.pool_json):
+    try:
+        data = paths.decision(paths.pool_json, signed=False)
+    except (OSError, ValueError) as exc:
+        raise UsageError(f"{paths.pool_json} is not a valid rl-pool pool config ({_why(exc)})") from None
+    if data is None:
+        why = claim.why_undecided(paths.pool_json, root=paths.root, cap=fsutil.JSON_MAX_BYTES)
+        if why:
+            raise UsageError(f"{paths.pool_json} is not a valid rl-pool pool config ({why})")
         raise UsageError(f"{paths.root} is not an rl-pool pool (no pool.json)")
     try:
-        return PoolConfig.from_json(paths.read_json(paths.pool_json)).validate()
+        return PoolConfig.from_json(json.loads(data.decode("utf-8"))).validate()
     except OldProtocol as exc:
         raise UsageError(
             f"{paths.root} was made by another rl-pool version (pool protocol {exc.protocol!r}, this one "
@@ -150,7 +188,8 @@ def attach_key(paths: Paths, key_file: str | None = None, required: bool = True)
     from . import keys
 
     try:
-        doc = paths.read_json(paths.pool_json)
+        data = paths.decision(paths.pool_json, signed=False)
+        doc = json.loads(data.decode("utf-8")) if data is not None else None
         if not isinstance(doc, dict) or "pool_id" not in doc or "key_fingerprint" not in doc:
             raise UsageError(f"{paths.pool_json} names no pool key")
         key = keys.load(str(doc["pool_id"]), str(doc["key_fingerprint"]), key_file)
@@ -172,9 +211,10 @@ def open_pool(paths: Paths, requested: dict, initial_agent, lock_timeout: float 
 
     ``initial_agent(config) -> (Agent, resolved config)`` builds the iteration-0
     agent; it must be deterministic in the config, since any member may build it.
-    Creation is an atomic link of a complete file, safe without working locks;
-    the file lock (with a timeout) only keeps racing members on one host from
-    building the environment twice.
+    Creation is a create-once decision (:mod:`rl_pool.claim`), safe without
+    working locks; the file lock (with a timeout) only keeps racing members on
+    one host from building the environment twice. A new pool's directory is
+    first checked with :func:`rl_pool.doctor.quick_check`.
     """
     from filelock import FileLock, Timeout
 
@@ -187,14 +227,22 @@ def open_pool(paths: Paths, requested: dict, initial_agent, lock_timeout: float 
         return cfg
     if os.path.isdir(paths.root):
         foreign = [n for n in fsutil.listdir(paths.root)
-                   if n not in ("iterations", "members", "logs", ".init.lock") and not fsutil.is_tmp(n)]
+                   if n not in ("iterations", "members", "logs", ".init.lock", "pool.json")
+                   and not fsutil.is_tmp(n) and not claim.is_decision_dir(n)]
         if foreign:
             raise UsageError(
                 f"{paths.root} is not empty and is not an rl-pool pool (found {foreign[0]!r}); use a new --pool-dir")
     # Check everything (arguments, environment) before anything is written.
     cfg = PoolConfig.merged(requested, None)
     _, cfg = initial_agent(cfg)
-    for d in (paths.root, paths.iterations, paths.members, paths.logs):
+    os.makedirs(paths.root, exist_ok=True)
+    from .doctor import quick_check
+
+    problems = quick_check(paths.root)
+    if problems:
+        raise UsageError(f"{paths.root} cannot hold a pool: {problems[0]} (`rl-pool doctor {paths.root}` "
+                         "says more)")
+    for d in (paths.iterations, paths.members, paths.logs):
         os.makedirs(d, exist_ok=True)
     from . import keys
 
@@ -212,12 +260,12 @@ def open_pool(paths: Paths, requested: dict, initial_agent, lock_timeout: float 
     try:
         with FileLock(paths.lock, timeout=lock_timeout):
             if not os.path.exists(paths.pool_json):
-                fsutil.create_exclusive(paths.pool_json, doc)
+                claim.create_once(paths.pool_json, doc, root=paths.root, cap=fsutil.JSON_MAX_BYTES)
     except (Timeout, OSError, NotImplementedError) as exc:
         # The lock only saves duplicate work; the atomic create is what counts. On NFS
         # without a lock daemon flock fails (ENOLCK/ENOSYS): go on without it.
         log.warning("init lock %s unavailable (%s); going on without it", paths.lock, type(exc).__name__)
-        fsutil.create_exclusive(paths.pool_json, doc)
+        claim.create_once(paths.pool_json, doc, root=paths.root, cap=fsutil.JSON_MAX_BYTES)
     cfg = PoolConfig.merged(requested, read_config(paths), where=f"pool {paths.root}")
     attach_key(paths, key_file)
     if paths.key.fingerprint() == key.fingerprint():
@@ -227,17 +275,18 @@ def open_pool(paths: Paths, requested: dict, initial_agent, lock_timeout: float 
 
 
 def _ensure_initial(paths: Paths, cfg: PoolConfig, initial_agent) -> None:
-    if os.path.exists(paths.selected(0)):
+    if read_selected(paths, 0) is not None:
         return
     os.makedirs(paths.iteration(0), exist_ok=True)
     agent, _ = initial_agent(cfg)
-    data = agent.to_bytes()
-    fsutil.create_exclusive(paths.initial(), data)
-    on_disk = paths.read_bytes(paths.initial(), max_file_bytes(agent.meta))
+    # Every member builds the same agent; one file is decided (and published as initial.npz).
+    on_disk, _ = claim.create_once(paths.initial(), agent.to_bytes(), root=paths.root,
+                                   cap=max_file_bytes(agent.meta))
     doc = {"iteration": 0, "member": None, "eval_return": None, "initial": True,
            "agent": paths.rel(paths.initial()), "agent_sha256": sha256(on_disk),
            "considered": [], "skipped": []}
-    fsutil.create_exclusive(paths.selected(0), fsutil.dumps(paths.sign(doc)))
+    claim.create_once(paths.selected(0), fsutil.dumps(paths.sign(doc)), root=paths.root,
+                      cap=fsutil.JSON_MAX_BYTES, accept=paths.signed)
 
 
 # ---------------------------------------------------------------- iterations
@@ -259,9 +308,13 @@ def iterations_on_disk(paths: Paths) -> list[int]:
 
 
 def read_selected(paths: Paths, i: int) -> dict | None:
-    """``selected.json`` of iteration ``i`` or None if not (yet, or readably) there."""
+    """The selection of iteration ``i`` (its decision, signed by a key holder) or None if not (yet,
+    or readably) there."""
     try:
-        doc = paths.read_json(paths.selected(i))
+        data = paths.decision(paths.selected(i))
+        if data is None:
+            return None
+        doc = json.loads(data.decode("utf-8"))
     except FileNotFoundError:
         return None
     except (OSError, ValueError) as exc:
@@ -510,39 +563,20 @@ def publish_selection(paths: Paths, selection: dict, by: int) -> tuple[dict, boo
     """Create ``selected.json`` unless it exists; return what is on disk and whether we wrote it."""
     i = selection["iteration"]
     doc = paths.sign(selection | {"selected_by": by, "time": time.time()})
-    for _ in range(10):
-        if fsutil.create_exclusive(paths.selected(i), fsutil.dumps(doc)):
-            return doc, True
-        # Someone else decided first: adopt their decision, never our own.
-        try:
-            st = os.lstat(paths.selected(i))
-            on_disk = paths.read_json(paths.selected(i), missing_retries=8)
-        except FileNotFoundError:
-            # Gone since our create failed: another member set a stranger's file aside (or an NFS
-            # client's negative lookup lags). Try to create it again.
-            time.sleep(0.01)
-            continue
-        except UnsafeFile as exc:
-            # Not a file any member writes (a FIFO, a directory, a link, a huge file): it holds
-            # the name but decides nothing. Clear the name and create the selection.
-            if exc.ident is None:
-                raise RuntimeError(f"{paths.selected(i)} is refused: {exc.strerror}") from None
-            log.warning("iteration %d: removing %s (%s)", i, paths.selected(i), exc.strerror)
-            fsutil.set_aside(paths.selected(i), exc.ident, root=paths.root)
-            continue
-        except (OSError, ValueError) as exc:
-            raise RuntimeError(f"{paths.selected(i)} exists but cannot be read: {exc}") from None
-        why = paths.why_unsigned(on_disk)
-        if why or not isinstance(on_disk, dict) or on_disk.get("iteration") != i:
-            # Not a key holder's decision (a forgery created first, or garbage): it holds the name
-            # but decides nothing. Move it aside and decide; a stranger can repeat this (denial of
-            # service) but never make the pool adopt their selection.
-            log.warning("iteration %d: setting aside %s (%s)", i, paths.selected(i),
-                        why or "not a selection of this iteration")
-            fsutil.set_aside(paths.selected(i), (st.st_dev, st.st_ino), root=paths.root)
-            continue
-        return on_disk, False
-    raise RuntimeError(f"{paths.selected(i)} keeps being occupied by files that are not selections")
+    try:
+        # Decisions that are not a key holder's (forged, unsigned, garbage) are passed over by
+        # create_once: a stranger can delay a decision (denial of service), never make it.
+        data, created = claim.create_once(paths.selected(i), fsutil.dumps(doc), root=paths.root,
+                                          cap=fsutil.JSON_MAX_BYTES, accept=paths.signed)
+    except claim.ClaimError as exc:
+        raise RuntimeError(str(exc)) from None
+    if created:
+        return doc, True
+    # Someone else decided first: adopt their decision, never our own.
+    on_disk = json.loads(data.decode("utf-8"))
+    if not isinstance(on_disk, dict) or on_disk.get("iteration") != i:
+        raise RuntimeError(f"{paths.selected(i)} is decided but is not a selection of iteration {i}")
+    return on_disk, False
 
 
 def update_best(paths: Paths, selection: dict | None) -> bool:
@@ -585,11 +619,9 @@ def _remove_matching(d: str, doomed) -> int:
     removed = 0
     for name in fsutil.listdir(d):
         if doomed(name):
-            try:
-                os.unlink(os.path.join(d, name))
-                removed += 1
-            except OSError:
-                pass
+            # a file, or a proposal directory of a killed member (rl_pool.claim)
+            claim.remove_proposal(os.path.join(d, name))
+            removed += 1
     return removed
 
 

@@ -20,7 +20,7 @@ import time
 
 import pytest
 
-from rl_pool import fsutil, pool
+from rl_pool import claim, fsutil, pool
 from rl_pool.errors import UnsafeFile
 
 from .conftest import ROOT, SHORT, rl_pool
@@ -291,8 +291,8 @@ def test_commands_refuse_special_files_in_one_line(tmp_path, capsys):
     for cmd in (["status", paths.root], ["plot", paths.root, "--out", tmp_path / "x.png"]):
         code, err = _cli(capsys, *cmd)
         assert code == 2 and err.count("\n") == 1 and "symbolic link" in err, err
-    os.unlink(paths.pool_json)
-    os.mkfifo(paths.pool_json)
+    os.unlink(os.path.join(claim.decision_dir(paths.pool_json), "data"))
+    os.mkfifo(os.path.join(claim.decision_dir(paths.pool_json), "data"))
     for cmd in (["status", paths.root],
                 ["launch", "--pool-dir", paths.root, "--pool-size", 1, "--iterations", 1],
                 ["train", "--pool-dir", paths.root, "--pool-size", 1, "--iterations", 1]):

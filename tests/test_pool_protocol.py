@@ -38,7 +38,7 @@ def test_init_writes_config_initial_and_selection_zero(tmp_path):
     assert sel["agent"] == "iterations/000000/initial.npz"
     assert pool.load_selected_agent(paths, 0).params["w"].shape == (9, 4)
     saved = json.loads(open(paths.pool_json).read())
-    assert saved["protocol"] == 2 and saved["pool_size"] == 2
+    assert saved["protocol"] == 3 and saved["pool_size"] == 2
 
 
 def test_reopening_with_other_settings_is_refused_and_changes_nothing(tmp_path):
@@ -178,7 +178,7 @@ def test_gc_keeps_selected_agent_and_all_json(tmp_path):
     assert pool.collect_garbage(paths, 1) == 3
     names = sorted(os.listdir(paths.iteration(1)))
     assert names == sorted([live, "member-000.json", "member-001.json", "member-001.npz",
-                            "member-002.json", "selected.json"])
+                            "member-002.json", "selected.json", ".selected.json.once"])
 
 
 def test_update_best_only_on_improvement(tmp_path):

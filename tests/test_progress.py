@@ -12,7 +12,7 @@ import time
 
 import pytest
 
-from rl_pool import fsutil, pool, progress, status
+from rl_pool import claim, fsutil, pool, progress, status
 
 from .conftest import ROOT, SHORT
 from .helpers import make_pool
@@ -50,9 +50,9 @@ def write_iteration(paths, i, returns, winner="branch", t=None, lrs=None, parent
     else:
         sel = {"winner": winner, "member": None, "eval_return": parent_return, "agent": prev["agent"]}
     considered = [{"member": m, "eval_return": r} for m, r in enumerate(returns)]
-    fsutil.write_json(paths.selected(i), _sign(paths, {
+    claim.create_once(paths.selected(i), fsutil.dumps(_sign(paths, {
         "iteration": i, "considered": considered, "skipped": [], "quorum_reason": "complete",
-        "agent_sha256": "0" * 64, "time": t, **sel}))
+        "agent_sha256": "0" * 64, "time": t, **sel})))
 
 
 def fake_pool(root, returns_by_iteration, pool_size=2, **kw):

@@ -15,7 +15,7 @@ import time
 
 import pytest
 
-from rl_pool import claim, pool
+from rl_pool import claim
 
 from .conftest import ROOT, SHORT, spawn
 from .seaweed import Seaweed, unavailable
@@ -117,9 +117,6 @@ def test_claims_racing_from_both_mounts_have_one_winner_that_both_mounts_read(se
     assert mounts_won == {a, b}, "one mount won every race: no real contention"
 
 
-@pytest.mark.xfail(not hasattr(pool, "claim"), strict=False,
-                   reason="pool.py still creates pool.json, initial.npz and selected.json with link "
-                          "(fsutil.create_exclusive), which is not exclusive across SeaweedFS mounts")
 def test_pool_with_members_on_two_mounts_makes_one_decision_per_iteration(seaweed):
     a, b = _same_dir(seaweed, "pool")
     iters = 4
