@@ -280,9 +280,15 @@ def create_once(path, data: bytes, root=None, wait: float = 120.0, cap: int = MA
 def _propose(final: str, content: bytes) -> OSError | None:
     """Rename a complete proposal onto ``final``; None if this rename made the decision."""
     prop = fsutil.tmp_name(final)
-    os.mkdir(prop, 0o755)
     try:
-        _write_new(os.path.join(prop, DATA), content)
+        os.mkdir(prop, 0o755)
+    except OSError as exc:  # a full or read-only disk: name the decision, not the temp directory
+        raise fsutil._named(exc, _plain_name(final)) from None
+    try:
+        try:
+            _write_new(os.path.join(prop, DATA), content)
+        except OSError as exc:
+            raise fsutil._named(exc, _plain_name(final)) from None
         _fsync_dir(prop)
         try:
             os.rename(prop, final)
@@ -291,6 +297,14 @@ def _propose(final: str, content: bytes) -> OSError | None:
             return exc
     finally:
         remove_proposal(prop)
+
+
+def _plain_name(final: str) -> str:
+    """``DIR/NAME`` for a decision directory ``DIR/.NAME.once[.K]`` (what a person knows it as)."""
+    d, base = os.path.split(final)
+    name = base[1:] if base.startswith(".") else base
+    name = name.split(".once")[0]
+    return os.path.join(d, name)
 
 
 def _await(path: str, k: int, root, cap: int, accept, wait: float) -> tuple:
