@@ -16,6 +16,9 @@ from .errors import UsageError
 
 #: 2: policy family (policy/hidden/link), parent in the selection, reward shift.
 PROTOCOL = 3  # 3: create-once decisions in .NAME.once/ (rl_pool.claim)
+#: Pools that read-only commands (status, plot, evaluate, compare) still read: 2 differs from 3 only
+#: in how create-once files are made, not in what they hold.
+READABLE_PROTOCOLS = (2, 3)
 
 
 def opt(default, help: str, choices=None, **kw):
@@ -103,10 +106,10 @@ class PoolConfig:
         return {"protocol": PROTOCOL, **asdict(self)}
 
     @classmethod
-    def from_json(cls, d: dict) -> PoolConfig:
+    def from_json(cls, d: dict, protocols: tuple = (PROTOCOL,)) -> PoolConfig:
         if not isinstance(d, dict):
             raise ValueError("not a JSON object")
-        if d.get("protocol") != PROTOCOL:
+        if d.get("protocol") not in protocols:
             raise OldProtocol(d.get("protocol"))
         names = {f.name for f in fields(cls)}
         missing = names - d.keys()

@@ -161,7 +161,7 @@ def resolve_agent(target: str) -> tuple[str, bytes]:
 
     path, root, follow = target, None, True
     if os.path.isdir(target):
-        pool.read_config(pool.Paths(target))  # a foreign directory is refused here
+        pool.read_config(pool.Paths(target), readonly=True)  # a foreign directory is refused here
         path, root, follow = os.path.join(target, "best.npz"), target, False
         if not os.path.lexists(path):
             raise UsageError(f"pool {target} has no best agent yet (no iteration completed)")

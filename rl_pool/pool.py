@@ -40,7 +40,7 @@ from dataclasses import dataclass
 
 from . import claim, fsutil
 from .agent import Agent, max_file_bytes
-from .config import PROTOCOL, OldProtocol, PoolConfig
+from .config import PROTOCOL, READABLE_PROTOCOLS, OldProtocol, PoolConfig
 from .errors import AgentFileError, UnsafeFile, UsageError
 
 log = logging.getLogger("rl_pool")
@@ -153,8 +153,9 @@ class Paths:
 
 
 # ---------------------------------------------------------------- pool.json
-def read_config(paths: Paths) -> PoolConfig:
-    """The saved pool config; UsageError if the directory is not an rl-pool pool."""
+def read_config(paths: Paths, readonly: bool = False) -> PoolConfig:
+    """The saved pool config; UsageError if the directory is not an rl-pool pool. ``readonly``
+    (status, plot, evaluate) also reads pools of the older protocols members no longer run."""
     if not os.path.isdir(paths.root):
         raise UsageError(f"no pool directory at {paths.root}")
     try:
@@ -167,7 +168,8 @@ def read_config(paths: Paths) -> PoolConfig:
             raise UsageError(f"{paths.pool_json} is not a valid rl-pool pool config ({why})")
         raise UsageError(f"{paths.root} is not an rl-pool pool (no pool.json)")
     try:
-        return PoolConfig.from_json(json.loads(data.decode("utf-8"))).validate()
+        protocols = READABLE_PROTOCOLS if readonly else (PROTOCOL,)
+        return PoolConfig.from_json(json.loads(data.decode("utf-8")), protocols).validate()
     except OldProtocol as exc:
         raise UsageError(
             f"{paths.root} was made by another rl-pool version (pool protocol {exc.protocol!r}, this one "

@@ -79,7 +79,7 @@ class Tracker:
             return True
         if not os.path.exists(self.paths.pool_json):
             return False
-        self.cfg = pool.read_config(self.paths)
+        self.cfg = pool.read_config(self.paths, readonly=True)
         # with the pool's key (if this host has it) forged or unsigned files are left out, as in status
         pool.attach_key(self.paths, required=False)
         doc = status._read(self.paths.pool_json) or {}
@@ -370,7 +370,7 @@ def check_watchable(pool_dir: str) -> None:
     if not os.path.isdir(paths.root):
         raise UsageError(f"no pool directory at {paths.root}")
     if os.path.exists(paths.pool_json):
-        pool.read_config(paths)
+        pool.read_config(paths, readonly=True)
         return
     from . import fsutil
 

@@ -147,7 +147,7 @@ def members(paths: pool.Paths, pool_size: int) -> list[dict]:
 
 def status(pool_dir: str) -> dict:
     paths = pool.Paths(pool_dir)
-    cfg = pool.read_config(paths)
+    cfg = pool.read_config(paths, readonly=True)
     # With the key (the default path, --key-file's env var) only key holders' files count, as for
     # members; a reader without it sees the files unverified, and says so.
     verified = pool.attach_key(paths, required=False)

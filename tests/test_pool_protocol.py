@@ -324,3 +324,16 @@ def test_with_a_reward_shift_selection_compares_the_training_objective(tmp_path)
     pool.deposit(paths3, 1, 0, agent(1), {"eval_return": 5.0})
     sel = pool.select(paths3, 1, cfg3, _like(paths3), {0}, "timeout", pool.read_selected(paths3, 0))
     assert sel["winner"] == "carried" and "eval_score" in sel["skipped"][0]["reason"]
+
+
+def test_read_only_commands_read_older_pools_members_refuse_them(tmp_path):
+    paths, _cfg = make_pool(tmp_path / "p", pool_size=1)
+    doc = json.loads(open(paths.pool_json).read())
+    older = pool.Paths(tmp_path / "old")
+    os.makedirs(older.root)
+    open(older.pool_json, "w").write(json.dumps(doc | {"protocol": 2}))  # a protocol-2 pool: plain file
+    assert pool.read_config(older, readonly=True).pool_size == 1
+    with pytest.raises(UsageError, match="pool protocol 2, this one speaks 3"):
+        pool.read_config(older)
+    with pytest.raises(UsageError, match="another rl-pool version"):
+        pool.open_pool(older, {}, fake_initial)
