@@ -414,13 +414,9 @@ def present(paths: Paths, i: int, pool_size: int) -> set[int]:
     return out
 
 
-def read_deposit(paths: Paths, i: int, m: int, like: Agent | None = None):
-    """``(metrics, agent)`` of a deposit, or raise ValueError with the reason it is invalid.
-
-    Checks: JSON parses and names this iteration and member; ``eval_return`` is
-    a finite number; the ``.npz`` matches the recorded hash, loads without
-    pickle, holds finite arrays of the right shapes, and fits the pool's env.
-    """
+def read_metrics(paths: Paths, i: int, m: int) -> dict:
+    """A deposit's metrics, or raise ValueError with the reason they are invalid: the JSON parses,
+    carries the pool key's signature, names this iteration and member, and has a finite return."""
     try:
         doc = paths.read_json(paths.deposit_json(i, m), missing_retries=5)
     except UnsafeFile as exc:
@@ -437,6 +433,13 @@ def read_deposit(paths: Paths, i: int, m: int, like: Agent | None = None):
     ret = doc.get("eval_return")
     if isinstance(ret, bool) or not isinstance(ret, (int, float)) or not math.isfinite(ret):
         raise ValueError(f"eval_return is not a finite number ({ret!r})")
+    return doc
+
+
+def read_agent(paths: Paths, i: int, m: int, doc: dict, like: Agent | None = None) -> Agent:
+    """The agent of a deposit whose metrics are ``doc``, or raise ValueError: the ``.npz`` matches
+    the hash in the metrics, loads without pickle, holds finite arrays of the right shapes, and
+    fits the pool's env and policy (``like``)."""
     cap = max_file_bytes(like.meta) if like is not None else fsutil.AGENT_MAX_BYTES
     try:
         data = paths.read_bytes(paths.deposit_npz(i, m), cap, missing_retries=5)
@@ -452,7 +455,14 @@ def read_deposit(paths: Paths, i: int, m: int, like: Agent | None = None):
         raise ValueError(str(exc)) from None
     if like is not None and (agent.meta != like.meta):
         raise ValueError("agent was made for another environment or policy shape")
-    return doc, agent
+    return agent
+
+
+def read_deposit(paths: Paths, i: int, m: int, like: Agent | None = None):
+    """``(metrics, agent)`` of a deposit, or raise ValueError with the reason it is invalid
+    (:func:`read_metrics`, then :func:`read_agent`)."""
+    doc = read_metrics(paths, i, m)
+    return doc, read_agent(paths, i, m, doc, like)
 
 
 def choose(candidates: list[tuple[int, float]]) -> tuple[int, float]:
@@ -506,7 +516,7 @@ def select(paths: Paths, i: int, cfg: PoolConfig, like: Agent, members: set[int]
             skipped.append({"member": m, "reason": "missing"})
             continue
         try:
-            doc, _ = read_deposit(paths, i, m, like)
+            doc = read_metrics(paths, i, m)
             score = doc.get("eval_score") if shifted else doc["eval_return"]
             if not _finite(score):
                 raise ValueError(f"eval_score is not a finite number ({score!r})")
@@ -515,7 +525,21 @@ def select(paths: Paths, i: int, cfg: PoolConfig, like: Agent, members: set[int]
             continue
         docs.append(doc)
         considered.append({"member": m, "eval_return": float(doc["eval_return"]), "score": float(score),
-                           "agent_sha256": doc["agent_sha256"]})
+                           "agent_sha256": doc["agent_sha256"], "doc": doc})
+    # Only the winner's agent is read and checked (hash, format, shapes): the cost of a selection
+    # grows with N small JSON files, not N agents. One that fails its check is skipped with the
+    # reason and the next best is tried, so the result is still a pure function of the files.
+    while considered:
+        top, _ = choose([(c["member"], c["score"]) for c in considered])
+        c = next(c for c in considered if c["member"] == top)
+        try:
+            read_agent(paths, i, top, c["doc"], like)
+            break
+        except ValueError as exc:
+            considered.remove(c)
+            docs.remove(c["doc"])
+            skipped.append({"member": top, "reason": str(exc)})
+    skipped.sort(key=lambda s: s["member"])
     out = {"iteration": i, "considered": [{k: c[k] for k in ("member", "eval_return", "score")}
                                           for c in considered],
            "skipped": skipped, "quorum_reason": reason,

@@ -337,3 +337,25 @@ def test_read_only_commands_read_older_pools_members_refuse_them(tmp_path):
         pool.read_config(older)
     with pytest.raises(UsageError, match="another rl-pool version"):
         pool.open_pool(older, {}, fake_initial)
+
+
+def test_selection_reads_n_metrics_and_only_the_winners_agent(tmp_path, monkeypatch):
+    n = 8
+    paths, cfg = make_pool(tmp_path / "p", pool_size=n)
+    for m in range(n):
+        _deposit(paths, 1, m, float(m), parent=-1.0)
+    # the best deposit's agent is broken: skipped with its reason, the next best wins
+    open(paths.deposit_npz(1, n - 1), "wb").write(b"not an agent")
+    # a lower-ranked broken agent is never read, so it cannot cost anything
+    open(paths.deposit_npz(1, 0), "wb").write(b"not an agent either")
+    like = _like(paths)
+    opened = []
+    real = fsutil.open_regular
+    monkeypatch.setattr(fsutil, "open_regular", lambda path, *a, **k: opened.append(path) or real(path, *a, **k))
+    sel = pool.select(paths, 1, cfg, like, set(range(n)), "complete", pool.read_selected(paths, 0))
+    assert (sel["winner"], sel["member"]) == ("branch", n - 2)
+    assert sel["skipped"] == [{"member": n - 1, "reason": "agent does not match the hash in its metrics"}]
+    assert [c["member"] for c in sel["considered"]] == list(range(n - 1))
+    agents = [p for p in opened if p.endswith(".npz")]
+    assert sorted(agents) == [paths.deposit_npz(1, n - 2), paths.deposit_npz(1, n - 1)]
+    assert len(opened) <= n + 3
