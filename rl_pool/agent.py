@@ -255,9 +255,10 @@ class Agent:
 
     @classmethod
     def load(cls, path: str | os.PathLike) -> Agent:
-        try:
-            with open(path, "rb") as fh:
-                data = fh.read()
+        from . import fsutil
+
+        try:  # bounded and non-blocking: a FIFO or /dev/zero named as an agent is refused, not read
+            data = fsutil.read_bytes(path, fsutil.AGENT_MAX_BYTES, follow=True)
         except OSError as exc:
             raise AgentFileError(f"cannot read agent {os.fspath(path)!r}: {exc.strerror or exc}") from None
         return cls.from_bytes(data, source=os.fspath(path))

@@ -386,6 +386,29 @@ def set_aside(path, ident: tuple[int, int], root=None) -> bool:
         os.close(dfd)
 
 
+def open_append(path, root=None):
+    """A log file of the pool opened for appending (binary), never blocking and never through a link:
+    a FIFO, device, directory or link a stranger put at the name is set aside first."""
+    path = os.fspath(path)
+    flags = os.O_WRONLY | os.O_APPEND | os.O_CREAT | os.O_NOFOLLOW | os.O_NONBLOCK | os.O_CLOEXEC
+    for _ in range(3):
+        try:
+            fd = os.open(path, flags, 0o644)
+        except OSError as exc:
+            if exc.errno not in (errno.ELOOP, errno.ENXIO, errno.EISDIR):
+                raise
+            st = os.lstat(path)  # a link (ELOOP), a FIFO without reader (ENXIO) or a directory
+            set_aside(path, (st.st_dev, st.st_ino), root=root)
+            continue
+        st = os.fstat(fd)
+        if stat.S_ISREG(st.st_mode):
+            os.set_blocking(fd, True)
+            return os.fdopen(fd, "ab")
+        os.close(fd)
+        set_aside(path, (st.st_dev, st.st_ino), root=root)
+    raise UnsafeFile(errno.EEXIST, "keeps being replaced by something that is not a file", path)
+
+
 def is_tmp(name: str) -> bool:
     return TMP_MARK in name and name.startswith(".")
 

@@ -18,7 +18,7 @@ import subprocess
 import sys
 import time
 
-from . import pool, progress, status
+from . import fsutil, pool, progress, status
 from .config import MemberConfig
 from .errors import UsageError
 from .threads import capped_environ
@@ -75,7 +75,7 @@ def launch(pool_dir: str, requested: dict, member_opts: dict, learning_rates: li
             cmd = [sys.executable, "-m", "rl_pool", "train", "--pool-dir", paths.root, "--member", str(m),
                    "--learning-rate", repr(lr), "--quiet", *_args(requested | {"pool_size": n}),
                    *_args(member_opts)]
-            with open(os.path.join(paths.logs, pool.member_name(m) + ".out"), "ab") as out:
+            with fsutil.open_append(os.path.join(paths.logs, pool.member_name(m) + ".out"), root=paths.root) as out:
                 procs.append(subprocess.Popen(cmd, stdout=out, stderr=subprocess.STDOUT,
                                               stdin=subprocess.DEVNULL, env=env, start_new_session=True))
         print(f"launched {n} members on {cfg.env} in {paths.root}; learning rates "
@@ -156,10 +156,10 @@ def _why(paths, m) -> str:
     if hb.get("error"):
         return str(hb["error"])
     try:
-        with open(os.path.join(paths.logs, pool.member_name(m) + ".out"), "rb") as fh:
-            fh.seek(0, os.SEEK_END)
-            fh.seek(max(0, fh.tell() - 2000))
-            tail = fh.read().decode(errors="replace").strip().splitlines()
-        return tail[-1] if tail else "no output"
+        fd, st = fsutil.open_regular(os.path.join(paths.logs, pool.member_name(m) + ".out"), root=paths.root)
     except OSError:
         return "no output"
+    with os.fdopen(fd, "rb") as fh:  # a regular file, opened without blocking or following links
+        fh.seek(max(0, st.st_size - 2000))
+        tail = fh.read(4000).decode(errors="replace").strip().splitlines()
+    return tail[-1] if tail else "no output"

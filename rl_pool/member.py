@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import dataclasses
 import errno
+import io
 import logging
 import os
 import signal
@@ -19,7 +20,7 @@ import sys
 import time
 import traceback
 
-from . import envs, pool, tb, trainer
+from . import envs, fsutil, pool, tb, trainer
 from .agent import Agent, AgentMeta
 from .config import MemberConfig, PoolConfig
 from .errors import Stopped, UsageError
@@ -72,7 +73,9 @@ def _setup_logging(paths: pool.Paths, member: int, quiet: bool) -> None:
     log.setLevel(logging.INFO)
     log.handlers.clear()
     log.propagate = False
-    fh = logging.FileHandler(paths.log(member))
+    # never blocks on, nor writes through, a FIFO or link a stranger put at the log's name
+    fh = logging.StreamHandler(io.TextIOWrapper(fsutil.open_append(paths.log(member), root=paths.root),
+                                                encoding="utf-8", line_buffering=True))
     fh.setFormatter(fmt)
     log.addHandler(fh)
     if not quiet:

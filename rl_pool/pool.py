@@ -281,9 +281,13 @@ def _ensure_initial(paths: Paths, cfg: PoolConfig, initial_agent) -> None:
         return
     os.makedirs(paths.iteration(0), exist_ok=True)
     agent, _ = initial_agent(cfg)
-    # Every member builds the same agent; one file is decided (and published as initial.npz).
-    on_disk, _ = claim.create_once(paths.initial(), agent.to_bytes(), root=paths.root,
-                                   cap=max_file_bytes(agent.meta))
+    mine = agent.to_bytes()
+    # Every member builds the same agent, byte for byte (a function of the signed config); one
+    # file is decided (and published as initial.npz). Bytes that differ were not made from this
+    # pool's settings (a stranger's planted "initial agent"): such a slot decides nothing.
+    on_disk, _ = claim.create_once(
+        paths.initial(), mine, root=paths.root, cap=max_file_bytes(agent.meta),
+        accept=lambda payload: None if payload == mine else "not the initial agent of this pool's settings")
     doc = {"iteration": 0, "member": None, "eval_return": None, "initial": True,
            "agent": paths.rel(paths.initial()), "agent_sha256": sha256(on_disk),
            "considered": [], "skipped": []}

@@ -478,3 +478,22 @@ def test_random_sigkills_and_restarts_lose_nothing(reference, tmp_path):  # noqa
     assert history(d) == hist
     assert len({k[2] for k in kills if len(k) == 3 and k[1] in ("training", "evaluating", "waiting")}) >= 3, \
         f"kills not spread over the run: {kills}"
+
+
+def test_log_names_and_agent_paths_taken_by_special_files(tmp_path):
+    """A FIFO at a member's log or launcher output is set aside, never opened blocking; a FIFO or a
+    link to /dev/zero named as an agent is refused at once."""
+    from rl_pool import Agent
+    from rl_pool.errors import AgentFileError
+
+    paths, _cfg = make_pool(tmp_path / "p", pool_size=1)
+    os.mkfifo(paths.log(0))
+    out = _in_time(lambda: fsutil.open_append(paths.log(0), root=paths.root))["value"]
+    out.write(b"a line\n")
+    out.close()
+    assert stat.S_ISREG(os.lstat(paths.log(0)).st_mode) and open(paths.log(0), "rb").read() == b"a line\n"
+    os.symlink("/dev/zero", tmp_path / "zero.npz")
+    os.mkfifo(tmp_path / "fifo.npz")
+    for name in ("zero.npz", "fifo.npz"):
+        got = _in_time(lambda n=name: Agent.load(tmp_path / n))
+        assert isinstance(got.get("error"), AgentFileError) and "cannot read agent" in str(got["error"])
