@@ -22,8 +22,10 @@ PRESETS: dict[str, dict] = {
                "learning_rates": [0.01, 0.03]},
     "walker2d": {"env": "Walker2d-v5", "reward_shift": 1.0, "selection": "branches", "revert_after": 20,
                  "learning_rates": [0.01, 0.03]},
-    "ant": {"env": "Ant-v5", "reward_shift": 1.0, "selection": "branches", "revert_after": 20,
-            "learning_rates": [0.01, 0.03]},
+    # Ant with the shift learns to end its episodes (flip over) within a minute and never recovers
+    # (results/ant-v5/screening/); without it, the parent rule keeps what standing and shuffling
+    # earn. Neither reaches the goal yet.
+    "ant": {"env": "Ant-v5", "learning_rates": [0.01, 0.1]},
     "inverted-double-pendulum": {"env": "InvertedDoublePendulum-v5", "learning_rates": [0.01, 0.1]},
     "reacher": {"env": "Reacher-v5", "learning_rates": [0.01, 0.1]},
 }
