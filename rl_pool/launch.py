@@ -69,7 +69,9 @@ def launch(pool_dir: str, requested: dict, member_opts: dict, learning_rates: li
     interrupted = False
     # Members run in their own sessions, so the launcher must pass on every way it can be told
     # to stop (Ctrl-C, kill, a closed terminal): otherwise they would train on unattended.
-    old = {s: signal.signal(s, _interrupt) for s in (signal.SIGTERM, signal.SIGHUP)}
+    global _stopping
+    _stopping = False
+    old = {s: signal.signal(s, _interrupt) for s in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)}
     try:
         for m, lr in enumerate(lrs):
             cmd = [sys.executable, "-m", "rl_pool", "train", "--pool-dir", paths.root, "--member", str(m),
@@ -102,7 +104,17 @@ def launch(pool_dir: str, requested: dict, member_opts: dict, learning_rates: li
     return 1 if failed else 0
 
 
+_stopping = False
+
+
 def _interrupt(signum, frame):
+    # Only the first signal stops the pool: a second Ctrl-C, or the same signal sent to the whole
+    # process group as well (GNU timeout does that), must not cut the members' shutdown short and
+    # leave them training unattended.
+    global _stopping
+    if _stopping:
+        return
+    _stopping = True
     raise KeyboardInterrupt
 
 

@@ -13,15 +13,16 @@ from .errors import UsageError
 PRESETS: dict[str, dict] = {
     "swimmer": {"env": "Swimmer-v5", "learning_rates": [0.01, 0.1]},
     "halfcheetah": {"env": "HalfCheetah-v5", "learning_rates": [0.01, 0.1]},
-    # Hopper, Walker2d and Ant pay 1 per step for staying alive: subtracted in training (as in
+    # Hopper (like Walker2d and Ant) pays 1 per step for staying alive: subtracted in training (as in
     # Mania et al. 2018's random search), otherwise REINFORCE learns to stand still. With the
     # shift, greedy parent-vs-branch selection stalls near the start (falling early is a local
     # optimum of the shifted reward), while always taking the best branch climbs out of it
     # (measured on Hopper, results/hopper-v5/); --revert-after keeps the pool from losing ground.
     "hopper": {"env": "Hopper-v5", "reward_shift": 1.0, "selection": "branches", "revert_after": 20,
                "learning_rates": [0.01, 0.03]},
-    "walker2d": {"env": "Walker2d-v5", "reward_shift": 1.0, "selection": "branches", "revert_after": 20,
-                 "learning_rates": [0.01, 0.03]},
+    # Walker2d with Hopper's recipe learned to fall early (378 in 20 minutes); without the shift
+    # the parent rule keeps a standing walker near 1000. Neither reaches the goal yet.
+    "walker2d": {"env": "Walker2d-v5", "learning_rates": [0.01, 0.1]},
     # Ant with the shift learns to end its episodes (flip over) within a minute and never recovers
     # (results/ant-v5/screening/); without it, the parent rule keeps what standing and shuffling
     # earn. Neither reaches the goal yet.

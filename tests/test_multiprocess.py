@@ -255,14 +255,18 @@ def test_member_that_falls_behind_rejoins_the_current_iteration(tmp_path):
     assert "rejoining at iteration" in (d / "logs/member-001.log").read_text()
 
 
-def test_launch_forwards_sigterm_to_its_members(tmp_path):
+@pytest.mark.parametrize("signals", [(signal.SIGTERM,), (signal.SIGINT, signal.SIGINT)], ids=["term", "int-twice"])
+def test_launch_forwards_sigterm_to_its_members(tmp_path, signals):
+    """One signal, or two at once (a double Ctrl-C; GNU timeout signals the process and its group):
+    the members are stopped either way, never left training unattended."""
     d = tmp_path / "term"
     launcher = spawn("launch", "--pool-dir", d, "--pool-size", 2, "--iterations", 500, *SHORT)
     deadline = time.time() + 120
     while not (d / "iterations/000002/selected.json").exists() and time.time() < deadline:
         time.sleep(0.01)
     pids = [json.loads((d / f"members/member-{m:03d}.json").read_text())["pid"] for m in (0, 1)]
-    launcher.send_signal(signal.SIGTERM)
+    for sig in signals:
+        launcher.send_signal(sig)
     launcher.communicate(timeout=60)
     assert launcher.returncode == 130
     for m, pid in enumerate(pids):
