@@ -254,7 +254,7 @@ def create_once(path, data: bytes, root=None, wait: float = 120.0, cap: int = MA
             token = _token()
             err = _propose(decision_dir(path, k), envelope(data, token))
             if err is None:
-                _fsync_dir(os.path.dirname(os.path.abspath(path)))
+                fsutil._fsync_dir(os.path.dirname(os.path.abspath(path)))
                 _publish(path, data, root=root)
                 return data, True
             if err.errno not in _MAYBE_DECIDED | {errno.ENOTDIR}:
@@ -289,7 +289,7 @@ def _propose(final: str, content: bytes) -> OSError | None:
             _write_new(os.path.join(prop, DATA), content)
         except OSError as exc:
             raise fsutil._named(exc, _plain_name(final)) from None
-        _fsync_dir(prop)
+        fsutil._fsync_dir(prop)
         try:
             os.rename(prop, final)
             return None
@@ -352,19 +352,6 @@ def _write_new(path: str, data: bytes) -> None:
         while view:
             view = view[os.write(fd, view):]
         os.fsync(fd)
-    finally:
-        os.close(fd)
-
-
-def _fsync_dir(d: str) -> None:
-    try:
-        fd = os.open(d or ".", os.O_RDONLY | os.O_DIRECTORY | os.O_CLOEXEC)
-    except OSError:
-        return
-    try:
-        os.fsync(fd)
-    except OSError:
-        pass
     finally:
         os.close(fd)
 
