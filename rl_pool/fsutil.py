@@ -2,9 +2,7 @@
 
 Everything written into a pool is written whole or not at all: a temp file in
 the same directory, flushed and fsynced, then ``os.replace`` (atomic on POSIX
-and on NFS). ``create_exclusive`` uses ``os.link`` of a complete temp file,
-which fails if the target exists: an atomic create-once that, unlike
-``O_EXCL`` on old NFS or ``flock``, needs no server-side lock support. A write
+and on NFS). Create-once decisions live in :mod:`rl_pool.claim`. A write
 that fails (full disk, read-only filesystem) removes its temp file and raises
 with the real name as ``filename``; nothing half written ever has a real name.
 
@@ -122,27 +120,6 @@ def atomic_write(path, data: bytes, sync_dir: bool = True) -> None:
         raise
     if sync_dir:
         _fsync_dir(os.path.dirname(path))
-
-
-def create_exclusive(path, data: bytes) -> bool:
-    """Create ``path`` with ``data`` unless it exists. True if this call created it."""
-    path = os.fspath(path)
-    tmp = _write_tmp(path, data)
-    try:
-        os.link(tmp, path)
-        created = True
-    except FileExistsError:
-        # On NFS a retransmitted LINK whose first reply was lost answers EEXIST even though
-        # this call made the link: then the temp file has two names.
-        created = os.stat(tmp).st_nlink == 2
-    except OSError as exc:
-        _unlink_quiet(tmp)
-        raise _named(exc, path) from None
-    finally:
-        _unlink_quiet(tmp)
-    if created:
-        _fsync_dir(os.path.dirname(path))
-    return created
 
 
 def finite_or_null(obj):

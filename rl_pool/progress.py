@@ -175,6 +175,19 @@ def _f(x, nd: int = 2) -> str:
     return "-" if not isinstance(x, (int, float)) or isinstance(x, bool) else f"{x:.{nd}f}"
 
 
+def _headline(label: str, rec: dict | None, style: str, why):
+    """A rich ``Text``: ``label``, then a return in ``style`` and ``(why(rec))``, or ``-``."""
+    from rich.text import Text
+
+    out = Text(label)
+    if rec is None:
+        out.append("-")
+    else:
+        out.append(_f(rec["eval_return"]), style=style)
+        out.append(f" ({why(rec)})")
+    return out
+
+
 def _rate(x) -> str:
     return "-" if x is None else f"{x:,.0f}"
 
@@ -228,18 +241,9 @@ def panel(snap: Snapshot):
     pace = Text(f"elapsed {clock(snap.elapsed)}   left "
                 + ("~" + clock(snap.eta) if snap.eta is not None else "-")
                 + f"   {_rate(snap.steps_per_second)} env steps/s")
-    sel = Text("selected ")
-    if snap.last is not None:
-        sel.append(_f(snap.last["eval_return"]), style="bold cyan")
-        sel.append(f" ({status.describe(snap.last)})")
-    else:
-        sel.append("-")
-    best = Text("best     ")
-    if snap.best is not None:
-        best.append(_f(snap.best["eval_return"]), style="bold green")
-        best.append(f" (iteration {snap.best['iteration']}, {status.describe(snap.best)})")
-    else:
-        best.append("-")
+    sel = _headline("selected ", snap.last, "bold cyan", lambda r: status.describe(r))
+    best = _headline("best     ", snap.best, "bold green",
+                     lambda r: f"iteration {r['iteration']}, {status.describe(r)}")
 
     mt = Table(box=None, padding=(0, 2), header_style="bold dim")
     for col, just in (("member", "right"), ("state", "left"), ("iter", "right"), ("lr", "right"),

@@ -193,14 +193,17 @@ def test_update_best_only_on_improvement(tmp_path):
     assert open(paths.best_npz, "rb").read() == agent(3).to_bytes()
 
 
-def test_atomic_write_leaves_no_temp_and_create_exclusive_is_once(tmp_path):
+def test_atomic_write_leaves_no_temp_and_create_once_is_once(tmp_path):
+    from rl_pool import claim
+
     p = tmp_path / "f.json"
     fsutil.atomic_write(p, b"one")
     fsutil.atomic_write(p, b"two")
     assert p.read_bytes() == b"two" and os.listdir(tmp_path) == ["f.json"]
-    assert fsutil.create_exclusive(tmp_path / "g", b"a") is True
-    assert fsutil.create_exclusive(tmp_path / "g", b"b") is False
-    assert (tmp_path / "g").read_bytes() == b"a" and sorted(os.listdir(tmp_path)) == ["f.json", "g"]
+    assert claim.create_once(tmp_path / "g", b"a") == (b"a", True)
+    assert claim.create_once(tmp_path / "g", b"b") == (b"a", False)
+    assert (tmp_path / "g").read_bytes() == b"a" and sorted(n for n in os.listdir(tmp_path)
+                                                          if not n.startswith(".")) == ["f.json", "g"]
 
 
 def test_liveness_judges_change_not_clocks(tmp_path):
