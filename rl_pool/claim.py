@@ -167,18 +167,19 @@ def unwrap(raw: bytes, where: str = "decision") -> tuple[bytes, str]:
 def _slot(path: str, k: int, root, cap: int, accept) -> tuple:
     d = decision_dir(path, k)
     f = os.path.join(d, DATA)
+    # One lookup answers the common case of a waiting member (nothing decided yet).
+    try:
+        st = os.lstat(d)
+    except FileNotFoundError:
+        return ("absent",)
+    except OSError as exc:
+        return ("invalid", f"{d}: {exc.strerror or exc}")
+    if not stat.S_ISDIR(st.st_mode):
+        return ("invalid", f"{d} is not a directory")
     try:
         raw = fsutil.read_bytes(f, cap + _HEADER_MAX, root=root)
     except (FileNotFoundError, NotADirectoryError):
-        try:
-            st = os.lstat(d)
-        except FileNotFoundError:
-            return ("absent",)
-        except OSError as exc:
-            return ("invalid", f"{d}: {exc.strerror or exc}")
-        if stat.S_ISDIR(st.st_mode):
-            return ("pending",)  # SeaweedFS still moving a renamed directory's entries; or junk
-        return ("invalid", f"{d} is not a directory")
+        return ("pending",)  # SeaweedFS still moving a renamed directory's entries; or junk
     except UnsafeFile as exc:
         return ("invalid", f"{f}: {exc.strerror}")
     try:

@@ -168,7 +168,8 @@ class MemberConfig:
     heartbeat_timeout: float = opt(60.0, "a member whose heartbeat has not changed for this long is stale")
     quorum: int = opt(0, "deposits needed to go on without stale members (0: majority, floor(N/2)+1)")
     keep_iterations: int = opt(5, "keep non-selected agents of the last K iterations (selected ones are always kept)")
-    poll_max: float = opt(0.01, "longest pause between barrier polls, seconds (raise on busy network filesystems)")
+    poll_max: float = opt(0.0, "longest pause between polls for the iteration's decision, seconds (0: "
+                               "max(0.01, N x 0.0005), about 2,000 lookups a second for the whole pool)")
     key_file: str = opt("", "the pool's secret key file (default: ~/.config/rl-pool/keys/<pool id>.key, "
                             "made with the pool; or $RL_POOL_KEY_FILE, or the key in hex in $RL_POOL_KEY)")
     lr_adapt: float = opt(0.0, "after losing an iteration, take the winner's learning rate times F or 1/F "
@@ -181,8 +182,10 @@ class MemberConfig:
             raise UsageError(f"--learning-rate must be positive, got {self.learning_rate}")
         if self.iterations < 1:
             raise UsageError(f"--iterations must be a positive integer, got {self.iterations}")
-        if not (self.barrier_timeout > 0 and self.heartbeat_timeout > 0 and self.poll_max > 0):
-            raise UsageError("--barrier-timeout, --heartbeat-timeout and --poll-max must be positive")
+        if not (self.barrier_timeout > 0 and self.heartbeat_timeout > 0):
+            raise UsageError("--barrier-timeout and --heartbeat-timeout must be positive")
+        if not (math.isfinite(self.poll_max) and self.poll_max >= 0):
+            raise UsageError(f"--poll-max must be >= 0 (0: chosen from the pool size), got {self.poll_max}")
         if not 0 <= self.quorum <= pool_size:
             raise UsageError(f"--quorum must be in 1..{pool_size} (0 for the majority), got {self.quorum}")
         if self.lr_adapt and not (math.isfinite(self.lr_adapt) and self.lr_adapt >= 1.0):
@@ -190,6 +193,11 @@ class MemberConfig:
         if self.keep_iterations < 0:
             raise UsageError(f"--keep-iterations must be >= 0, got {self.keep_iterations}")
         return self
+
+    def poll_max_for(self, pool_size: int) -> float:
+        """The longest pause between decision polls: ``--poll-max``, or one that grows with N so the
+        lookups the waiting members make stay near 2,000 a second (docs/cluster.md)."""
+        return self.poll_max or max(0.01, 0.0005 * pool_size)
 
     def quorum_for(self, pool_size: int) -> int:
         return self.quorum or pool_size // 2 + 1

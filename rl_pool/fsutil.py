@@ -17,6 +17,9 @@ Nothing read from a pool is trusted (DESIGN.md §8). Every read here:
   previous one, so no symlinked directory (``iterations/000003 -> /dev``)
   leads out of the pool; the pool directory itself is the user's choice and
   may be a link;
+* with a :class:`Root` holding a directory below it open (``with root.holding(d)``),
+  walks from that descriptor instead: a member waiting at a barrier opens its
+  iteration directory once, not once for every file it reads there;
 * refuses a file larger than its cap before reading and reads at most cap + 1
   bytes, so a file that grows while it is read is refused, not read forever.
 
@@ -34,8 +37,10 @@ import math
 import os
 import socket
 import stat
+import threading
 import time
 import uuid
+from contextlib import contextmanager
 
 from .errors import UnsafeFile
 
@@ -77,7 +82,7 @@ def _named(exc: OSError, path: str) -> OSError:
     return OSError(exc.errno, exc.strerror or str(exc), path)  # the errno's own subclass (ENOSPC: OSError)
 
 
-def _write_tmp(path: str, data: bytes) -> str:
+def _write_tmp(path: str, data: bytes, durable: bool = True) -> str:
     tmp = tmp_name(path)
     try:
         fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL | os.O_CLOEXEC, 0o644)
@@ -89,7 +94,8 @@ def _write_tmp(path: str, data: bytes) -> str:
             while view:
                 n = os.write(fd, view)
                 view = view[n:]
-            os.fsync(fd)  # a network filesystem may report a full disk only here or at close
+            if durable:
+                os.fsync(fd)  # a network filesystem may report a full disk only here or at close
         finally:
             os.close(fd)
     except BaseException as exc:
@@ -107,10 +113,17 @@ def _unlink_quiet(path: str) -> None:
         pass
 
 
-def atomic_write(path, data: bytes, sync_dir: bool = True) -> None:
-    """Replace ``path`` with ``data`` atomically."""
+def atomic_write(path, data: bytes, sync_dir: bool = True, durable: bool = True) -> None:
+    """Replace ``path`` with ``data`` atomically.
+
+    ``durable``: fsync the data before the rename (and the directory after it, with
+    ``sync_dir``), so a machine that crashes keeps the file whole or the old one. Files
+    that only say how things are going (heartbeats, wait times) skip both: after a
+    crash they are rewritten or ignored, and each fsync is a disk flush (on NFS a
+    COMMIT to the server) that a pool of N members would make N times an iteration.
+    Atomicity against readers and killed writers is the rename's, either way."""
     path = os.fspath(path)
-    tmp = _write_tmp(path, data)
+    tmp = _write_tmp(path, data, durable)
     try:
         os.replace(tmp, path)
     except BaseException as exc:
@@ -118,7 +131,7 @@ def atomic_write(path, data: bytes, sync_dir: bool = True) -> None:
         if isinstance(exc, OSError):
             raise _named(exc, path) from None
         raise
-    if sync_dir:
+    if sync_dir and durable:
         _fsync_dir(os.path.dirname(path))
 
 
@@ -137,8 +150,8 @@ def dumps(obj) -> bytes:
     return (json.dumps(obj, indent=1, sort_keys=True, allow_nan=False) + "\n").encode()
 
 
-def write_json(path, obj, sync_dir: bool = True) -> None:
-    atomic_write(path, dumps(obj), sync_dir=sync_dir)
+def write_json(path, obj, sync_dir: bool = True, durable: bool = True) -> None:
+    atomic_write(path, dumps(obj), sync_dir=sync_dir, durable=durable)
 
 
 _KINDS = ((stat.S_ISDIR, "a directory"), (stat.S_ISLNK, "a symbolic link"), (stat.S_ISFIFO, "a FIFO"),
@@ -165,23 +178,79 @@ def _parts(path: str, root: str) -> list[str]:
     return parts
 
 
+class Root(str):
+    """A pool directory's path (a ``str``) that can hold directories below it open.
+
+    ``with root.holding(d):`` opens ``d`` once (walked from the root as every
+    read is) and, in that thread, reads and listings below ``d`` start from
+    that descriptor: on a network filesystem a lookup of each path component
+    is a round trip to the server, made once instead of once per file. The
+    held descriptor keeps naming the directory it opened even if a stranger
+    renames another in its place, which is what a walk from the root would
+    have found when the hold began.
+    """
+
+    def __new__(cls, path):
+        obj = super().__new__(cls, os.path.abspath(os.fspath(path)))
+        obj._local = threading.local()
+        return obj
+
+    def __reduce__(self):  # held descriptors belong to this process: a copy starts with none
+        return Root, (str(self),)
+
+    def held(self) -> dict:
+        if not hasattr(self._local, "fds"):
+            self._local.fds = {}
+        return self._local.fds
+
+    @contextmanager
+    def holding(self, d):
+        d = os.path.abspath(os.fspath(d))
+        held = self.held()
+        if d in held:
+            yield
+            return
+        try:
+            fd = _open_dir(d, self)
+        except OSError:
+            fd = None  # not there (yet) or refused: reads walk from the root and say why
+        if fd is not None:
+            held[d] = fd
+        try:
+            yield
+        finally:
+            if held.get(d) == fd and fd is not None:
+                del held[d]
+                os.close(fd)
+
+
 def _open_dir(path: str, root: str | None, target: str | None = None) -> int:
     """A descriptor of directory ``path``. With ``root``: reached from ``root`` one component at a
-    time, never through a symbolic link (``root`` itself is opened as given). ``target``: the
-    file wanted in it, named in errors (default: ``path``)."""
+    time, never through a symbolic link (``root`` itself is opened as given), or from the nearest
+    directory a :class:`Root` holds. ``target``: the file wanted in it, named in errors (default:
+    ``path``)."""
     target = path if target is None else target
     flags = os.O_RDONLY | os.O_DIRECTORY | os.O_CLOEXEC
     if root is None:
         return os.open(path or ".", flags)
     parts = _parts(path, root)
-    fd = os.open(root, flags)
+    base, fd = root, None
+    if isinstance(root, Root):
+        held = root.held()
+        for k in range(len(parts), 0, -1):
+            start = os.path.join(root, *parts[:k])
+            if start in held:
+                base, fd, parts = start, os.dup(held[start]), parts[k:]
+                break
+    if fd is None:
+        fd = os.open(root, flags)
     try:
         for k, part in enumerate(parts):
             try:
                 nfd = os.open(part, flags | os.O_NOFOLLOW, dir_fd=fd)
             except OSError as exc:
                 if exc.errno in (errno.ELOOP, errno.ENOTDIR):
-                    where = os.path.join(root, *parts[:k + 1])
+                    where = os.path.join(base, *parts[:k + 1])
                     try:
                         st = os.stat(part, dir_fd=fd, follow_symlinks=False)
                         what = _kind(st.st_mode)

@@ -256,10 +256,10 @@ def _loop(paths: pool.Paths, cfg: PoolConfig, mc: MemberConfig, hb: pool.Heartbe
             hb.set(last_return=mine)
         hb.set(state="waiting", iteration=i)
         res = pool.barrier(paths, i, cfg, me, like, quorum, mc.barrier_timeout, liveness,
-                           poll_max=mc.poll_max)
+                           poll_max=mc.poll_max_for(cfg.pool_size))
         pool.fsutil.write_json(paths.wait_json(i, me),
                                {"iteration": i, "member": me, "wait_seconds": res.waited,
-                                "resumed_at": time.time()}, sync_dir=False)
+                                "resumed_at": time.time()}, durable=False)
         sel = res.selection
         pool.update_best(paths, sel)  # every member: a kill of the selection's writer must not lose it
         if res.created and i - mc.keep_iterations >= 1:

@@ -62,7 +62,7 @@ class Paths:
     """Where each file of a pool lives."""
 
     def __init__(self, root):
-        self.root = os.path.abspath(os.fspath(root))
+        self.root = fsutil.Root(root)
         self.pool_json = os.path.join(self.root, "pool.json")
         self.lock = os.path.join(self.root, ".init.lock")
         self.iterations = os.path.join(self.root, "iterations")
@@ -95,6 +95,10 @@ class Paths:
 
     def log(self, m: int) -> str:
         return os.path.join(self.logs, member_name(m) + ".log")
+
+    def holding(self, d: str):
+        """Reads below directory ``d`` start from one descriptor while the block runs (fsutil.Root)."""
+        return self.root.holding(d)
 
     def rel(self, path: str) -> str:
         return os.path.relpath(path, self.root)
@@ -394,7 +398,7 @@ def deposit(paths: Paths, i: int, m: int, agent: Agent, metrics: dict) -> dict:
     """Write agent then metrics, each atomically; the metrics file marks the deposit done."""
     make_iteration_dir(paths, i)
     data = agent.to_bytes()
-    fsutil.atomic_write(paths.deposit_npz(i, m), data)
+    fsutil.atomic_write(paths.deposit_npz(i, m), data, sync_dir=False)  # the metrics' directory fsync covers it
     # Non-finite numbers are written as null (JSON has no NaN); selection then skips the deposit.
     doc = paths.sign(fsutil.finite_or_null({"iteration": i, "member": m, "agent_sha256": sha256(data), **metrics}))
     fsutil.write_json(paths.deposit_json(i, m), doc)
@@ -733,7 +737,7 @@ class Heartbeat:
             self.doc["time"] = time.time()
             data = fsutil.dumps(self.paths.sign(fsutil.finite_or_null(self.doc)))
         try:
-            fsutil.atomic_write(self.paths.heartbeat(self.member), data, sync_dir=False)
+            fsutil.atomic_write(self.paths.heartbeat(self.member), data, durable=False)
         except OSError as exc:
             log.warning("heartbeat write failed: %s", exc)
 
@@ -794,61 +798,75 @@ class BarrierResult:
     waited: float
 
 
+#: Listings of a waiting member's iteration directory: right after its deposit, then after gaps
+#: doubling from LIST_FIRST to LIST_MAX seconds (docs/cluster.md: "Listings").
+LIST_FIRST, LIST_MAX = 0.05, 1.0
+
+
 def barrier(paths: Paths, i: int, cfg: PoolConfig, me: int, like: Agent, quorum: int,
             timeout: float, liveness: Liveness, poll_max: float = 0.01,
             stop: threading.Event | None = None) -> BarrierResult:
     """Wait for iteration ``i``'s deposits, then select (or adopt the selection already made).
 
-    Goes on when all ``pool_size`` deposits are present; or, with at least
-    ``quorum`` present, when every missing member is stale or ``timeout``
-    seconds have passed. Without a quorum after ``timeout`` it raises
-    :class:`BarrierTimeout`. Polls back off from 1 ms to ``poll_max``.
+    A waiting member polls one name, the iteration's decision (a lookup, not a
+    listing; pauses back off from 1 ms to ``poll_max``), and lists the
+    directory only right after its own deposit and then on a slow timer
+    (:data:`LIST_FIRST` doubling to :data:`LIST_MAX` seconds). The member whose
+    listing shows all ``pool_size`` deposits selects: normally the last
+    depositor, alone; the timer covers a listing that lagged behind another
+    host's deposit. With at least ``quorum`` deposits listed, a member also
+    goes on when every missing member is stale or ``timeout`` seconds have
+    passed (checked at listing times). Without a quorum after ``timeout`` it
+    raises :class:`BarrierTimeout`. Two members selecting at once is harmless:
+    selection is a pure function of the files and the decision is create-once.
     """
     t0 = time.monotonic()
     delay = 0.001
-    next_liveness = t0
+    next_list, list_gap = t0, LIST_FIRST
+    have: set[int] = set()
     reason = None
-    while True:
-        sel = read_selected(paths, i)
-        if sel is not None:
-            return BarrierResult(sel, False, time.monotonic() - t0)
-        have = present(paths, i, cfg.pool_size)
-        now = time.monotonic()
-        if len(have) == cfg.pool_size:
-            reason = "complete"
-            break
-        missing = sorted(set(range(cfg.pool_size)) - have)
-        if len(have) >= quorum and now >= next_liveness:
-            next_liveness = now + 0.25
-            why = [liveness.stale(m) for m in missing]
-            if all(why):
-                # List again: a member may have deposited and then stopped since the last listing.
+    with paths.holding(paths.iteration(i)):
+        while True:
+            sel = read_selected(paths, i)
+            if sel is not None:
+                return BarrierResult(sel, False, time.monotonic() - t0)
+            now = time.monotonic()
+            if now >= next_list:
+                next_list, list_gap = now + list_gap, min(2 * list_gap, LIST_MAX)
                 have = present(paths, i, cfg.pool_size)
-                reason = "went on without stale members: " + "; ".join(
-                    w for m, w in zip(missing, why, strict=True) if m not in have)
                 if len(have) == cfg.pool_size:
                     reason = "complete"
-                break
-        if now - t0 >= timeout:
-            if len(have) >= quorum:
-                reason = f"barrier timeout after {timeout:.0f}s; missing {missing}"
-                break
-            raise BarrierTimeout(
-                f"iteration {i}: only {len(have)} of {cfg.pool_size} deposits after {timeout:.0f}s "
-                f"(quorum {quorum}); restart to resume")
-        if stop is not None and stop.is_set():
-            raise KeyboardInterrupt
-        time.sleep(delay)
-        delay = min(delay * 2, poll_max)
-    if reason != "complete":
-        log.warning("iteration %d: %s", i, reason)
-    previous = read_selected(paths, i - 1)
-    if previous is None:
-        raise RuntimeError(f"iteration {i - 1} has no readable selection")
-    selection = select(paths, i, cfg, like, have, reason, previous)
-    for s in selection["skipped"]:
-        if s["reason"] != "missing":
-            log.warning("iteration %d: skipped member %d: %s", i, s["member"], s["reason"])
-    doc, created = publish_selection(paths, selection, me)
+                    break
+                missing = sorted(set(range(cfg.pool_size)) - have)
+                if len(have) >= quorum:
+                    why = [liveness.stale(m) for m in missing]
+                    if all(why):
+                        # List again: a member may have deposited and then stopped since the last listing.
+                        have = present(paths, i, cfg.pool_size)
+                        reason = "went on without stale members: " + "; ".join(
+                            w for m, w in zip(missing, why, strict=True) if m not in have)
+                        if len(have) == cfg.pool_size:
+                            reason = "complete"
+                        break
+                if now - t0 >= timeout:
+                    if len(have) >= quorum:
+                        reason = f"barrier timeout after {timeout:.0f}s; missing {missing}"
+                        break
+                    raise BarrierTimeout(
+                        f"iteration {i}: only {len(have)} of {cfg.pool_size} deposits after {timeout:.0f}s "
+                        f"(quorum {quorum}); restart to resume")
+            if stop is not None and stop.is_set():
+                raise KeyboardInterrupt
+            time.sleep(max(0.0, min(delay, next_list - time.monotonic())))
+            delay = min(delay * 2, poll_max)
+        if reason != "complete":
+            log.warning("iteration %d: %s", i, reason)
+        previous = read_selected(paths, i - 1)
+        if previous is None:
+            raise RuntimeError(f"iteration {i - 1} has no readable selection")
+        selection = select(paths, i, cfg, like, have, reason, previous)
+        for s in selection["skipped"]:
+            if s["reason"] != "missing":
+                log.warning("iteration %d: skipped member %d: %s", i, s["member"], s["reason"])
+        doc, created = publish_selection(paths, selection, me)
     return BarrierResult(doc, created, time.monotonic() - t0)
-

@@ -156,7 +156,7 @@ class Board:
 
     def _mark(self) -> None:
         for d in self.writers:
-            fsutil.write_json(os.path.join(d, MARK), {"through": self.through}, sync_dir=False)
+            fsutil.write_json(os.path.join(d, MARK), {"through": self.through}, durable=False)
         self.marked = self.through
 
     def _guard(self, fn, *args) -> None:

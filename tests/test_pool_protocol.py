@@ -3,6 +3,9 @@
 import io
 import json
 import os
+import pickle
+import threading
+import time
 
 import numpy as np
 import pytest
@@ -240,6 +243,80 @@ def test_barrier_lists_again_after_a_stale_verdict(tmp_path):
                        liveness=LateThenStopped(paths, 60))
     assert res.selection["member"] == 2 and res.selection["skipped"] == []
     assert res.selection["quorum_reason"] == "complete"
+
+
+def test_the_member_that_sees_every_deposit_selects_the_others_wait_on_the_decision(tmp_path):
+    """Member 0 deposits first and waits; member 1 deposits last, lists once, sees both and
+    selects; member 0 adopts that decision having listed the directory only on its slow timer."""
+
+    paths, cfg = make_pool(tmp_path / "p", pool_size=2)
+    _deposit(paths, 1, 0, 1.0)
+    listings = []
+    real_listdir = fsutil.listdir
+
+    def counting_listdir(path, root=None):
+        if threading.current_thread().name == "member-0":
+            listings.append(path)
+        return real_listdir(path, root)
+
+    out = {}
+
+    def member0():
+        out[0] = pool.barrier(paths, 1, cfg, 0, _like(paths), quorum=2, timeout=30,
+                              liveness=pool.Liveness(paths, 60), poll_max=0.01)
+
+    fsutil.listdir = counting_listdir
+    try:
+        t = threading.Thread(target=member0, name="member-0")
+        t.start()
+        time.sleep(0.6)  # member 0 polls the decision ~60 times meanwhile
+        _deposit(paths, 1, 1, 2.0)
+        out[1] = pool.barrier(paths, 1, cfg, 1, _like(paths), quorum=2, timeout=30,
+                              liveness=pool.Liveness(paths, 60), poll_max=0.01)
+        t.join(10)
+    finally:
+        fsutil.listdir = real_listdir
+    assert out[1].created and not out[0].created
+    assert out[0].selection == out[1].selection and out[1].selection["member"] == 1
+    # listed at 0, 0.05, 0.15, 0.35 s (gaps doubling to 1 s), perhaps at 0.75 s: never per poll
+    assert 3 <= len(listings) <= 5, listings
+
+
+def test_a_held_directory_is_opened_once_and_reads_below_it_stay_bounded(tmp_path):
+
+
+    paths, _ = make_pool(tmp_path / "p", pool_size=2)
+    _deposit(paths, 1, 0, 1.0)
+    d = paths.iteration(1)
+    os.symlink("/dev/zero", os.path.join(d, "member-001.json"))
+    opened = []
+    real_open = os.open
+
+    def counting_open(path, flags, *a, **kw):
+        if flags & os.O_DIRECTORY:
+            opened.append(path)
+        return real_open(path, flags, *a, **kw)
+
+    os.open = counting_open
+    try:
+        with paths.holding(d):
+            assert len(opened) == 3  # pool, iterations, 000001: once
+            for _ in range(5):
+                assert pool.read_metrics(paths, 1, 0)["eval_return"] == 1.0
+                with pytest.raises(ValueError, match="refused"):
+                    pool.read_metrics(paths, 1, 1)
+            assert len(opened) == 3
+            assert pool.present(paths, 1, 2) == {0, 1}  # by name; selection then skips the link
+            assert len(opened) == 3
+        held_reads = len(opened)
+        pool.read_metrics(paths, 1, 0)
+        assert len(opened) == held_reads + 3  # walked from the root again
+    finally:
+        os.open = real_open
+    assert paths.root.held() == {}
+    # a copy of the root (a spawned process's) holds nothing of this one's
+    copy = pickle.loads(pickle.dumps(paths.root))
+    assert copy == paths.root and isinstance(copy, fsutil.Root) and copy.held() == {}
 
 
 def test_parent_competes_and_keeps_the_pool_from_losing_ground(tmp_path):
