@@ -12,6 +12,7 @@ import os
 import subprocess
 import sys
 import time
+from pathlib import Path
 
 import pytest
 
@@ -142,3 +143,90 @@ def test_pool_with_members_on_two_mounts_makes_one_decision_per_iteration(seawee
                 assert dep["parent_sha256"] == prev["agent_sha256"], (i, m)
     for d in (a, b):
         assert claim.read_once(os.path.join(d, "pool.json")) == open(os.path.join(d, "pool.json"), "rb").read()
+
+
+def _wait_for(path, pred, timeout=120.0):
+    """The JSON at ``path`` once ``pred`` holds for it (None after ``timeout``)."""
+    deadline = time.time() + timeout
+    while time.time() < deadline:
+        try:
+            doc = json.loads(open(path, "rb").read())
+        except (OSError, ValueError):
+            doc = None
+        if doc is not None and pred(doc):
+            return doc
+        time.sleep(0.005)
+    return None
+
+
+def test_kill_and_restart_across_mounts_replays_the_local_disk_history(seaweed, tmp_path):
+    """Member 0 on mount A, member 1 on mount B, SIGKILLed while training and restarted on B:
+    the pool's history (every selection, score and agent hash) equals a local-disk run's."""
+    from .test_multiprocess import ITERS, history, run_pool
+
+    reference = run_pool(tmp_path / "local")
+    a, b = _same_dir(seaweed, "killed")
+    args = ["--pool-size", 2, "--iterations", ITERS, *SHORT, "--quiet", "--lr-adapt", 2,
+            "--heartbeat-timeout", 300, "--barrier-timeout", 300]
+    m0 = spawn("train", "--pool-dir", a, "--member", 0, "--learning-rate", 0.003, *args)
+    m1 = spawn("train", "--pool-dir", b, "--member", 1, "--learning-rate", 0.03, *args)
+    doc = _wait_for(os.path.join(b, "members/member-001.json"),
+                    lambda d: d.get("state") == "training" and (d.get("iteration") or 0) >= 3)
+    assert doc is not None, "member 1 never trained in iteration >= 3"
+    m1.kill()
+    m1.wait()
+    assert m0.poll() is None  # member 0, on the other mount, holds at the barrier
+    m1 = spawn("train", "--pool-dir", b, "--member", 1, "--learning-rate", 0.03, *args)
+    for p in (m0, m1):
+        _, err = p.communicate(timeout=300)
+        assert p.returncode == 0, err
+    assert _eventually(lambda: history(Path(a)) == reference), "history through mount A differs"
+    assert _eventually(lambda: history(Path(b)) == reference), "history through mount B differs"
+
+
+def test_quorum_path_and_hostile_deposits_across_mounts(seaweed):
+    """Pool of 3 with member 2 never coming: members 0 (mount A) and 1 (mount B) wait out its
+    heartbeat and decide at the same moment from two mounts; deposits planted under member 2's
+    name through mount B (a FIFO, links to /dev/zero, a directory, an unsigned forgery) are
+    skipped with a reason. One decision per iteration, the same bytes through both mounts."""
+    a, b = _same_dir(seaweed, "quorum")
+    iters = 7
+    args = ["--pool-size", 3, "--quorum", 2, "--iterations", iters, *SHORT, "--quiet",
+            "--heartbeat-timeout", 3, "--barrier-timeout", 300]
+    m0 = spawn("train", "--pool-dir", a, "--member", 0, "--learning-rate", 0.003, *args)
+    assert _eventually(lambda: os.path.exists(os.path.join(b, "iterations/000000/selected.json")), 60)
+    m1 = spawn("train", "--pool-dir", b, "--member", 1, "--learning-rate", 0.03, *args)
+    # plant while the members start (interpreters, JAX): iterations 4.. are minutes away
+    planted = {4: "fifo", 5: "dev-zero", 6: "directory", 7: "forged"}
+    for i, kind in planted.items():
+        d = os.path.join(b, f"iterations/{i:06d}")
+        os.makedirs(d, exist_ok=True)
+        j, npz = os.path.join(d, "member-002.json"), os.path.join(d, "member-002.npz")
+        if kind == "fifo":
+            os.mkfifo(j)
+            os.mkfifo(npz)
+        elif kind == "dev-zero":
+            os.symlink("/dev/zero", j)
+            os.symlink("/dev/zero", npz)
+        elif kind == "directory":
+            os.makedirs(j)
+        else:  # well-formed, winning, but not signed with the pool's key
+            with open(j, "w") as fh:
+                json.dump({"iteration": i, "member": 2, "eval_return": 1e9, "agent_sha256": "0" * 64}, fh)
+    for p in (m0, m1):
+        _, err = p.communicate(timeout=300)
+        assert p.returncode == 0, err
+    for i in range(1, iters + 1):
+        rel = f"iterations/{i:06d}/selected.json"
+        paths = [os.path.join(d, rel) for d in (a, b)]
+        via = [_eventually(lambda p=p: _read(p)) for p in paths]
+        assert via[0] is not None and via[0] == via[1], f"{rel} reads differently through the two mounts"
+        sel = json.loads(via[0])
+        assert sel["member"] in (0, 1, None), sel
+        assert [s["member"] for s in sel["skipped"]] == [2], sel
+        reason = sel["skipped"][0]["reason"]
+        if i in planted:
+            assert reason != "missing" and sel["quorum_reason"] == "complete", (i, sel)
+        else:
+            assert reason == "missing" and sel["quorum_reason"].startswith("went on without stale members"), \
+                (i, sel)
