@@ -61,6 +61,7 @@ def run_episodes(envs, params: dict, spec: policy.PolicySpec, norm, low, high, s
     returns = np.zeros(n)
     lengths = np.zeros(n, dtype=np.int64)
     active = np.arange(n)
+    live = list(range(n))  # ``active`` as Python ints, for the per-env loop
     all_active = True
     step_fns = [env.step for env in envs[:n]]
 
@@ -75,18 +76,24 @@ def run_episodes(envs, params: dict, spec: policy.PolicySpec, norm, low, high, s
             obs_buf[active, t] = o_act
             u_buf[active, t] = u
             mask[active, t] = 1.0
-        ended = []
-        for k, idx in enumerate(active):
+        # The envs are stepped in a plain loop (MuJoCo's work); everything per step that NumPy
+        # can do for the whole batch is done once, after it.
+        obs_t, rew_t, ended = [], [], []
+        for k, idx in enumerate(live):
             o, r, terminated, _, _ = step_fns[idx](actions[k])
-            cur[idx] = o
-            returns[idx] += r
-            if record:
-                rew_buf[idx, t] = r
+            obs_t.append(o)
+            rew_t.append(r)
             if terminated:
                 ended.append(k)
+        cur[active] = obs_t
+        rew = np.asarray(rew_t, dtype=np.float64)
+        returns[active] += rew
+        if record:
+            rew_buf[active, t] = rew
         lengths[active] += 1
         if ended:
             active = np.delete(active, ended)
+            live = [idx for k, idx in enumerate(live) if k not in set(ended)]
             all_active = False
             if active.size == 0:
                 break
