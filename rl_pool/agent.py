@@ -133,9 +133,10 @@ class Agent:
 
     # ----- construction -------------------------------------------------
     @classmethod
-    def initial(cls, meta: AgentMeta, seed: int = 0) -> Agent:
-        """The iteration-0 agent: initial parameters from ``seed``, empty normaliser and moments."""
-        params = policy.init_params(meta.spec, meta.obs_dim, meta.act_dim, seed)
+    def initial(cls, meta: AgentMeta, seed: int = 0, shape: float | None = None) -> Agent:
+        """The iteration-0 agent: initial parameters from ``seed`` (Beta shapes ``shape`` at the start,
+        see :func:`rl_pool.policy.init_params`), empty normaliser and moments."""
+        params = policy.init_params(meta.spec, meta.obs_dim, meta.act_dim, seed, shape)
         zeros = {k: np.zeros_like(v) for k, v in params.items()}
         return cls(meta, params, normalizer.init(meta.obs_dim), zeros, dict(zeros), 0.0)
 

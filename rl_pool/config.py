@@ -45,6 +45,8 @@ class PoolConfig:
                       ("linear", "mlp"))
     hidden: str = opt("64,64", "MLP hidden layer sizes, comma-separated (tanh units; --policy mlp only)")
     link: str = opt("exp", "Beta shapes from pre-activations z: exp(z)+1 or softplus(z)+1", ("exp", "softplus"))
+    init_shape: float = opt(0.0, "Beta shapes alpha = beta of every action at the start (> 1; larger explores "
+                                 "less; 0: link(0) + 1, i.e. 2 with the exp link)", added=True)
     reward_shift: float = opt(0.0, "subtracted from every training reward (e.g. 1 = the survival bonus of "
                                    "Hopper/Walker2d/Ant); evaluation scores the env's own reward")
     selection: str = opt("parent", "who competes for an iteration: the branches and the parent re-scored on "
@@ -94,6 +96,13 @@ class PoolConfig:
             raise UsageError("--env-kwargs must be a JSON object")
         if not math.isfinite(self.reward_shift):
             raise UsageError(f"--reward-shift must be a finite number, got {self.reward_shift}")
+        if self.init_shape:
+            from .policy import init_bias
+
+            try:
+                init_bias(self.link, self.init_shape)
+            except ValueError as exc:
+                raise UsageError(f"--init-shape: {exc}") from None
         if self.revert_after < 0:
             raise UsageError(f"--revert-after must be >= 0, got {self.revert_after}")
         try:
@@ -112,10 +121,12 @@ class PoolConfig:
         if d.get("protocol") not in protocols:
             raise OldProtocol(d.get("protocol"))
         names = {f.name for f in fields(cls)}
-        missing = names - d.keys()
+        # fields added after protocol 3 began take their default in pools made before them
+        added = {f.name: f.default for f in fields(cls) if f.metadata.get("added")}
+        missing = names - d.keys() - added.keys()
         if missing:
             raise ValueError(f"missing {', '.join(sorted(missing))}")
-        return cls(**{k: d[k] for k in names})
+        return cls(**{k: d.get(k, added.get(k)) for k in names})
 
     @classmethod
     def merged(cls, requested: dict, saved: PoolConfig | None, where: str = "the pool") -> PoolConfig:

@@ -56,7 +56,7 @@ def make_initial(cfg: PoolConfig):
     cfg = dataclasses.replace(cfg, max_episode_steps=info.max_episode_steps)
     meta = AgentMeta(cfg.env, dict(cfg.env_kwargs), info.max_episode_steps, info.obs_dim, info.act_dim,
                      tuple(float(x) for x in info.low), tuple(float(x) for x in info.high), cfg.spec)
-    return Agent.initial(meta, seed=cfg.seed), cfg
+    return Agent.initial(meta, seed=cfg.seed, shape=cfg.init_shape or None), cfg
 
 
 def check_arguments(paths: pool.Paths, requested: dict, members: list[MemberConfig]) -> PoolConfig:

@@ -95,15 +95,31 @@ def param_shapes(spec: PolicySpec, obs_dim: int, act_dim: int) -> dict[str, tupl
     return shapes
 
 
-def init_params(spec: PolicySpec, obs_dim: int, act_dim: int, seed: int = 0) -> dict[str, np.ndarray]:
+def init_bias(link: str, shape: float) -> float:
+    """The output bias that makes ``alpha = beta = shape`` (> 1): the link's inverse at ``shape - 1``."""
+    if not (math.isfinite(shape) and shape > 1.0):
+        raise ValueError(f"an initial Beta shape must be > 1, got {shape}")
+    if link == "exp":
+        if shape - 1.0 > math.exp(Z_MAX):
+            raise ValueError(f"an initial Beta shape must be <= 1 + e^{Z_MAX:g} with the exp link, got {shape}")
+        return math.log(shape - 1.0)
+    return math.log(math.expm1(shape - 1.0))  # softplus^-1
+
+
+def init_params(spec: PolicySpec, obs_dim: int, act_dim: int, seed: int = 0,
+                shape: float | None = None) -> dict[str, np.ndarray]:
     """Initial parameters, a deterministic function of ``seed``.
 
-    The output layer starts at zero, so every kind starts from the same policy:
-    ``alpha = beta = link(0) + 1`` (2 for ``exp``), a broad bump centred on the
-    middle of each action range. Hidden layers draw ``N(0, 1/fan_in)`` weights
-    (LeCun's scaling, which keeps ``tanh`` units out of saturation) and zero biases.
+    The output layer's weights start at zero, so every kind starts from the same
+    policy: ``alpha = beta = link(0) + 1`` (2 for ``exp``), a broad bump centred
+    on the middle of each action range; ``shape`` sets its bias so that
+    ``alpha = beta = shape`` instead (a larger shape explores less: the action's
+    variance is ``(high - low)^2 / (4 (2 shape + 1))``, which matters where
+    the reward charges for large actions, as Ant's control cost does).
+    Hidden layers draw ``N(0, 1/fan_in)`` weights (LeCun's scaling, which keeps
+    ``tanh`` units out of saturation) and zero biases.
     """
-    shapes = param_shapes(spec, obs_dim, act_dim)
+    shape_, shapes = shape, param_shapes(spec, obs_dim, act_dim)
     rng = np.random.Generator(np.random.PCG64(np.random.SeedSequence([int(seed), _INIT_TAG])))
     params = {}
     n_layers = len(spec.hidden) + 1
@@ -113,6 +129,12 @@ def init_params(spec: PolicySpec, obs_dim: int, act_dim: int, seed: int = 0) -> 
             params[name] = np.zeros(shape)
         else:
             params[name] = rng.normal(0.0, 1.0 / math.sqrt(shape[0]), size=shape)
+    if shape_ is not None:
+        bias = init_bias(spec.link, shape_)
+        if spec.kind == "linear":
+            params["w"][-1] = bias
+        else:
+            params[f"b{n_layers - 1}"][:] = bias
     return params
 
 

@@ -115,6 +115,25 @@ def test_init_is_deterministic_from_the_seed_and_starts_at_the_same_policy():
         np.testing.assert_array_equal(b, 2.0)
 
 
+@pytest.mark.parametrize("kind, hidden", [("linear", ()), ("mlp", (16,))])
+@pytest.mark.parametrize("link", ["exp", "softplus"])
+def test_initial_shape_sets_alpha_and_beta_everywhere(kind, hidden, link):
+    spec = policy.PolicySpec(kind, hidden, link)
+    x = np.random.default_rng(1).normal(size=(7, 11))
+    for shape in (1.5, 5.0, 30.0):
+        a, b = policy.beta_params(policy.init_params(spec, 11, 3, seed=2, shape=shape), x, spec)
+        np.testing.assert_allclose(a, shape, rtol=1e-12)
+        np.testing.assert_allclose(b, shape, rtol=1e-12)
+        # the action variance the docstring states, against scipy's Beta
+        assert scipy.stats.beta(shape, shape).var() == pytest.approx(1 / (4 * (2 * shape + 1)))
+    # no shape: the same parameters as ever (committed agents and histories replay)
+    plain = policy.init_params(spec, 11, 3, seed=2)
+    assert all(np.array_equal(plain[k], v) for k, v in policy.init_params(spec, 11, 3, seed=2, shape=None).items())
+    for bad in (1.0, 0.5, float("nan")):
+        with pytest.raises(ValueError):
+            policy.init_params(spec, 11, 3, seed=2, shape=bad)
+
+
 def test_policy_spec_refuses_nonsense():
     for bad in [("conv", ()), ("linear", (3,)), ("mlp", ()), ("mlp", (0,)), ("mlp", (10**6,))]:
         with pytest.raises(ValueError):

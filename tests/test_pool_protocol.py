@@ -10,7 +10,7 @@ import time
 import numpy as np
 import pytest
 
-from rl_pool import fsutil, pool
+from rl_pool import fsutil, policy, pool
 from rl_pool.errors import UsageError
 
 from .helpers import Evil, agent, fake_initial, make_pool
@@ -439,3 +439,25 @@ def test_selection_reads_n_metrics_and_only_the_winners_agent(tmp_path, monkeypa
     agents = [p for p in opened if p.endswith(".npz")]
     assert sorted(agents) == [paths.deposit_npz(1, n - 2), paths.deposit_npz(1, n - 1)]
     assert len(opened) <= n + 3
+
+
+def test_pools_made_before_init_shape_still_read_and_it_shapes_the_initial_agent():
+    from rl_pool.config import PoolConfig
+    from rl_pool.member import make_initial
+
+    cfg = PoolConfig(env="Swimmer-v5", pool_size=2).validate()
+    saved = cfg.to_json()
+    del saved["init_shape"]  # a pool.json written before the option existed
+    assert PoolConfig.from_json(saved) == cfg
+    del saved["seed"]
+    with pytest.raises(ValueError, match="missing seed"):
+        PoolConfig.from_json(saved)
+    with pytest.raises(UsageError, match="--init-shape"):
+        PoolConfig(init_shape=0.5).validate()
+    agent, _ = make_initial(PoolConfig(env="Swimmer-v5", init_shape=6.0).validate())
+    x = np.zeros((1, agent.meta.obs_dim))
+    alpha, beta = policy.beta_params(agent.params, x, agent.spec)
+    np.testing.assert_allclose(alpha, 6.0)
+    np.testing.assert_allclose(beta, 6.0)
+    default, _ = make_initial(PoolConfig(env="Swimmer-v5").validate())
+    assert default.to_bytes() != agent.to_bytes()
