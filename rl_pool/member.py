@@ -253,7 +253,7 @@ def _loop(paths: pool.Paths, cfg: PoolConfig, mc: MemberConfig, hb: pool.Heartbe
             }
             pool.deposit(paths, i, me, tr.agent, metrics)
             mine = ev.mean
-            hb.set(last_return=mine)
+            hb.update(last_return=mine)
         hb.set(state="waiting", iteration=i)
         res = pool.barrier(paths, i, cfg, me, like, quorum, mc.barrier_timeout, liveness,
                            poll_max=mc.poll_max_for(cfg.pool_size))
@@ -268,7 +268,8 @@ def _loop(paths: pool.Paths, cfg: PoolConfig, mc: MemberConfig, hb: pool.Heartbe
                  i, describe_winner(sel), _fmt(sel.get("eval_return")), _fmt(mine), res.waited)
         board.record(i, sel, metrics, res.waited)
         lr = _next_learning_rate(paths, cfg, mc, sel, lr)
-        hb.set(selected=sel.get("member"), selected_return=sel.get("eval_return"), learning_rate=lr)
+        # written with the next state change (training, a moment from now) or the final one
+        hb.update(selected=sel.get("member"), selected_return=sel.get("eval_return"), learning_rate=lr)
         prev = sel
         i += 1
     board.close()

@@ -727,9 +727,13 @@ class Heartbeat:
         return self
 
     def set(self, **fields) -> None:
+        self.update(**fields)
+        self.write()
+
+    def update(self, **fields) -> None:
+        """Change fields for the next write (a state change, or the periodic beat), without writing."""
         with self._lock:
             self.doc.update(fields)
-        self.write()
 
     def write(self) -> None:
         with self._lock:

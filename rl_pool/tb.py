@@ -50,6 +50,8 @@ POOL_WRITER = 0
 #: Iterations between updates of a run's ``written.json`` (how far a restart must rewrite, at most).
 MARK_EVERY = 50
 MARK = "written.json"
+#: Seconds between flushes of the event files (each flush is an fsync).
+FLUSH_EVERY = 2.0
 
 MEMBER_TAGS = ("return/eval", "return/train_mean", "member/learning_rate", "member/train_steps_per_second",
                "member/train_seconds", "member/eval_seconds", "member/barrier_wait_seconds", "member/won")
@@ -111,8 +113,10 @@ class Board:
     """One member's TensorBoard writer (and, for member 0, the pool's).
 
     Call :meth:`catch_up` once on start, :meth:`record` once per iteration
-    after the barrier, :meth:`close` at the end. Each record is written and
-    flushed (with fsync) before it returns.
+    after the barrier, :meth:`close` at the end. Records are flushed (with
+    fsync) at most every :data:`FLUSH_EVERY` seconds and on close: a dashboard
+    a few seconds behind costs nothing, an fsync per iteration costs a pool
+    of short iterations much of its time (docs/cluster.md).
     """
 
     def __init__(self, paths: pool.Paths, member: int, pool_size: int, on: bool | None = None):
@@ -122,6 +126,8 @@ class Board:
         self.writers: dict[str, object] = {}
         self.best: float | None = None
         self.through = 0      # every iteration up to this one is flushed to this process's files
+        self.written = 0      # ... written (perhaps not yet flushed)
+        self.flushed_at = float("-inf")
         self.marked = 0       # ... and recorded in written.json
         self.pool_through = 0  # the pool run has every selection up to this one
 
@@ -181,10 +187,14 @@ class Board:
         summary = Summary(value=[Summary.Value(tag=t, simple_value=v) for t, v in scalars.items()])
         w.write_event(Event(step=step, wall_time=time.time() if walltime is None else walltime, summary=summary))
 
-    def _flush(self, through: int) -> None:
+    def _flush(self, through: int, force: bool = True) -> None:
+        self.written = max(self.written, through)
+        if not force and time.monotonic() - self.flushed_at < FLUSH_EVERY:
+            return
         for w in self.writers.values():
             w.flush()  # file flush + fsync
-        self.through = max(self.through, through)
+        self.flushed_at = time.monotonic()
+        self.through = max(self.through, self.written)
         if self.through - self.marked >= MARK_EVERY:
             self._mark()
 
@@ -197,7 +207,7 @@ class Board:
     def _catch_up(self, upto: int) -> None:
         first = min([self._written(d) for d in self.runs] + [upto]) + 1
         self._open(first)
-        self.through = self.marked = self.pool_through = first - 1
+        self.through = self.written = self.marked = self.pool_through = first - 1
         if self.member == POOL_WRITER and first > 1:
             self.best = self._best_before(first)
         for i in range(first, upto + 1):
@@ -242,7 +252,7 @@ class Board:
             won = sel.get("winner", "branch") == "branch" and sel.get("member") == self.member
             self._write(self.runs[0], i, member_scalars(metrics, wait_seconds, won), _num(metrics.get("time")))
         self._pool(sel)
-        self._flush(i)
+        self._flush(i, force=False)
 
     def _pool(self, sel: dict) -> None:
         """The pool run through ``sel``'s iteration, including selections this member skipped (it fell
@@ -271,7 +281,7 @@ class Board:
         self._close_quietly()
 
     def _flush_and_mark(self) -> None:
-        self._flush(self.through)
+        self._flush(self.written)
         self._mark()
 
     def _close_quietly(self) -> None:
