@@ -262,7 +262,7 @@ class _FsCounter:
                     if name == "replace" and len(a) > 1 and os.fsdecode(a[1]).endswith(c.marker) \
                             and f"{os.sep}iterations{os.sep}" in os.fsdecode(a[1]):
                         out = fn(*a, **kw)
-                        c.marks.append((time.monotonic(), dict(c.count)))
+                        c.marks.append((time.monotonic(), dict(c.count), time.process_time()))
                         return out
                 return fn(*a, **kw)
             return wrapper
@@ -322,15 +322,16 @@ def _protocol_pool(n: int, dirs: list[str], iterations: int, warmup: int, extra:
             if p.returncode != 0:
                 raise SystemExit(f"member exited with {p.returncode}: {err.strip()[-500:]}")
         per_kind = {k: [] for k in KINDS}
-        secs = []
+        secs, cpu = [], []
         for m in range(n):
             with open(os.path.join(counts, f"{m}.json")) as fh:
                 marks = json.load(fh)["marks"][warmup:]
-            for (t0, c0), (t1, c1) in itertools.pairwise(marks):
+            for (t0, c0, p0), (t1, c1, p1) in itertools.pairwise(marks):
                 secs.append(t1 - t0)
+                cpu.append(p1 - p0)
                 for k in KINDS:
                     per_kind[k].append(c1.get(k, 0) - c0.get(k, 0))
-        return {"ms": 1000 * statistics.median(secs),
+        return {"ms": 1000 * statistics.median(secs), "cpu_ms": 1000 * statistics.median(cpu),
                 **{k: statistics.mean(v) for k, v in per_kind.items()},
                 "cycles": len(secs)}
     finally:
@@ -351,20 +352,23 @@ def protocol(args) -> None:
     print(f"env {args.env}, 10-step episodes, 1 training + 1 evaluation episode per member and iteration, "
           f"{args.iterations} iterations (first {args.warmup} not counted); pool on {', '.join(dirs)}")
     print("per member and iteration (mean over members and iterations; ms: median):")
-    print(f"{'N':>4} {'ms/iter':>8} {'reads':>6} {'writes':>6} {'missing':>7} {'dir opens':>9} "
+    print(f"{'N':>4} {'ms/iter':>8} {'cpu ms':>6} {'floor':>6} {'reads':>6} {'writes':>6} {'missing':>7} {'dir opens':>9} "
           f"{'listings':>8} {'stats':>6} {'renames':>7} {'fsyncs':>6} {'reads <= N+3':>12}")
     rows = []
     try:
         for n in args.members:
             r = _protocol_pool(n, dirs, args.iterations, args.warmup, extra)
             rows.append({"members": n, **r})
-            print(f"{n:>4} {r['ms']:>8.1f} {r['open_read']:>6.1f} {r['open_write']:>6.1f} "
+            floor = n * r["cpu_ms"] / min(n, os.cpu_count() or 1)
+            print(f"{n:>4} {r['ms']:>8.1f} {r['cpu_ms']:>6.1f} {floor:>6.0f} {r['open_read']:>6.1f} {r['open_write']:>6.1f} "
                   f"{r['open_missing']:>7.1f} {r['open_dir']:>9.1f} {r['listing']:>8.1f} {r['stat']:>6.1f} "
                   f"{r['rename']:>7.1f} {r['fsync']:>6.1f} {'yes' if r['open_read'] <= n + 3 else 'no':>12}",
                   flush=True)
     finally:
         if base:
             shutil.rmtree(base, ignore_errors=True)
+    print(f"cpu ms: a member's own CPU time per iteration (all its threads); floor: N x cpu ms / cores used "
+          f"(min(N, {os.cpu_count()})), the shortest iteration these CPUs allow whatever the protocol does;")
     print("reads/writes: files opened to read/write; missing: opens of names not there (yet): polls;")
     print("dir opens: directories opened (fsync of a directory, the no-symlink walk of rl_pool.fsutil)")
     if args.json:
