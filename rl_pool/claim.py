@@ -169,9 +169,11 @@ def _slot(path: str, k: int, root, cap: int, accept) -> tuple:
     f = os.path.join(d, DATA)
     # One lookup answers the common case of a waiting member (nothing decided yet).
     try:
-        st = os.lstat(d)
+        st = fsutil.lstat(d, root)
     except FileNotFoundError:
         return ("absent",)
+    except UnsafeFile as exc:
+        return ("invalid", f"{d}: {exc.strerror}")
     except OSError as exc:
         return ("invalid", f"{d}: {exc.strerror or exc}")
     if not stat.S_ISDIR(st.st_mode):

@@ -122,7 +122,8 @@ class PoolConfig:
             raise OldProtocol(d.get("protocol"))
         names = {f.name for f in fields(cls)}
         # fields added after protocol 3 began take their default in pools made before them
-        added = {f.name: f.default for f in fields(cls) if f.metadata.get("added")}
+        added = {f.name: f.default if f.default is not MISSING else f.default_factory()
+                 for f in fields(cls) if f.metadata.get("added")}
         missing = names - d.keys() - added.keys()
         if missing:
             raise ValueError(f"missing {', '.join(sorted(missing))}")

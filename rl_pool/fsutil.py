@@ -183,8 +183,9 @@ class Root(str):
 
     ``with root.holding(d):`` opens ``d`` once (walked from the root as every
     read is) and, in that thread, reads and listings below ``d`` start from
-    that descriptor: on a network filesystem a lookup of each path component
-    is a round trip to the server, made once instead of once per file. The
+    that descriptor (``openat(held, ".")``, then the file): on a network
+    filesystem a lookup of each path component is a round trip to the server,
+    made once instead of once per file. The
     held descriptor keeps naming the directory it opened even if a stranger
     renames another in its place, which is what a walk from the root would
     have found when the hold began.
@@ -240,7 +241,10 @@ def _open_dir(path: str, root: str | None, target: str | None = None) -> int:
         for k in range(len(parts), 0, -1):
             start = os.path.join(root, *parts[:k])
             if start in held:
-                base, fd, parts = start, os.dup(held[start]), parts[k:]
+                # Open "." afresh rather than dup the held descriptor: on NFS an open of a
+                # directory revalidates its cached attributes (close-to-open), so listings and
+                # lookups below it see other hosts' new files as a walk from the root would.
+                base, fd, parts = start, os.open(".", flags, dir_fd=held[start]), parts[k:]
                 break
     if fd is None:
         fd = os.open(root, flags)
@@ -352,6 +356,23 @@ def read_json(path, missing_retries: int = 0, root=None, cap: int = JSON_MAX_BYT
     """Parse a JSON file read as :func:`read_bytes` does; raises OSError (UnsafeFile included)
     or ValueError (incl. JSONDecodeError, UnicodeDecodeError)."""
     return json.loads(read_bytes(path, cap, missing_retries=missing_retries, root=root).decode("utf-8"))
+
+
+def lstat(path, root=None) -> os.stat_result:
+    """``os.lstat(path)``, reaching the parent as reads do: with ``root``, no symbolic link on the
+    way (UnsafeFile), and the parent directory opened afresh (on NFS that revalidates its cached
+    entries, so a name another host just created is not hidden by a cached "no such file")."""
+    path = os.fspath(path)
+    if root is None:
+        return os.lstat(path)
+    d, name = os.path.split(os.path.abspath(path))
+    dfd = _open_dir(d, root, path)
+    try:
+        return os.stat(name, dir_fd=dfd, follow_symlinks=False)
+    except FileNotFoundError as exc:
+        raise FileNotFoundError(errno.ENOENT, exc.strerror or "No such file or directory", path) from None
+    finally:
+        os.close(dfd)
 
 
 def listdir(path, root=None) -> list[str]:

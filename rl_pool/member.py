@@ -215,64 +215,66 @@ def _loop(paths: pool.Paths, cfg: PoolConfig, mc: MemberConfig, hb: pool.Heartbe
     lr = _learning_rate_for(paths, cfg, mc, first)
     board = tb.Board(paths, me, cfg.pool_size)  # TensorBoard: POOL/tb/member-III/ (member 0 also POOL/tb/pool/)
     board.catch_up(first - 1)
-    i = first
-    while i <= mc.iterations:
-        if pool.read_selected(paths, i) is not None:
-            # Decided without us (we were stopped or slow): rejoin where the pool is now.
-            i = max(pool.last_selected(paths) + 1, i + 1)
-            log.warning("pool went on without this member; rejoining at iteration %d", i)
-            lr = _learning_rate_for(paths, cfg, mc, i)
-            prev = pool.read_selected(paths, i - 1)
-            continue
-        pool.make_iteration_dir(paths, i)
-        if os.path.lexists(paths.deposit_json(i, me)):
-            log.info("iteration %d: own deposit already on disk; waiting for the others", i)
-            mine = metrics = None
-        else:
-            start = pool.load_selected_agent(paths, i - 1, prev, like=like)
-            hb.set(state="training", iteration=i)
-            tr = trainer.train(start, env_list, cfg, lr, me, i)
-            hb.set(state="evaluating")
-            ev = trainer.evaluate(tr.agent, env_list, cfg, i)
-            parent = {}
-            if cfg.selection == "parent":
-                # The parent competes on the same episodes; every member scores it, so the
-                # selection does not depend on any one member's deposit being there.
-                pe = trainer.evaluate(start, env_list, cfg, i)
-                parent = {"parent_eval_return": pe.mean, "parent_eval_score": pe.score,
-                          "parent_sha256": prev["agent_sha256"],
-                          "parent_eval_seconds": pe.seconds, "parent_eval_steps": pe.steps}
-            metrics = ev.summary() | parent | {
-                "learning_rate": lr,
-                "train_steps": tr.steps, "train_seconds": tr.seconds,
-                "train_return_mean": sum(tr.episode_returns) / len(tr.episode_returns),
-                "eval_steps": ev.steps, "eval_seconds": ev.seconds,
-                "grad_norm": tr.grad_norms[-1],
-                "parent": {"iteration": i - 1, "member": prev.get("member")},
-                "host": socket.gethostname(), "pid": os.getpid(), "time": time.time(),
-            }
-            pool.deposit(paths, i, me, tr.agent, metrics)
-            mine = ev.mean
-            hb.update(last_return=mine)
-        hb.set(state="waiting", iteration=i)
-        res = pool.barrier(paths, i, cfg, me, like, quorum, mc.barrier_timeout, liveness,
-                           poll_max=mc.poll_max_for(cfg.pool_size))
-        pool.fsutil.write_json(paths.wait_json(i, me),
-                               {"iteration": i, "member": me, "wait_seconds": res.waited,
-                                "resumed_at": time.time()}, durable=False)
-        sel = res.selection
-        pool.update_best(paths, sel)  # every member: a kill of the selection's writer must not lose it
-        if res.created and i - mc.keep_iterations >= 1:
-            pool.collect_garbage(paths, i - mc.keep_iterations)
-        log.info("iteration %d: selected %s (eval return %s); mine %s; waited %.3fs",
-                 i, describe_winner(sel), _fmt(sel.get("eval_return")), _fmt(mine), res.waited)
-        board.record(i, sel, metrics, res.waited)
-        lr = _next_learning_rate(paths, cfg, mc, sel, lr)
-        # written with the next state change (training, a moment from now) or the final one
-        hb.update(selected=sel.get("member"), selected_return=sel.get("eval_return"), learning_rate=lr)
-        prev = sel
-        i += 1
-    board.close()
+    try:
+        i = first
+        while i <= mc.iterations:
+            if pool.read_selected(paths, i) is not None:
+                # Decided without us (we were stopped or slow): rejoin where the pool is now.
+                i = max(pool.last_selected(paths) + 1, i + 1)
+                log.warning("pool went on without this member; rejoining at iteration %d", i)
+                lr = _learning_rate_for(paths, cfg, mc, i)
+                prev = pool.read_selected(paths, i - 1)
+                continue
+            pool.make_iteration_dir(paths, i)
+            if os.path.lexists(paths.deposit_json(i, me)):
+                log.info("iteration %d: own deposit already on disk; waiting for the others", i)
+                mine = metrics = None
+            else:
+                start = pool.load_selected_agent(paths, i - 1, prev, like=like)
+                hb.set(state="training", iteration=i)
+                tr = trainer.train(start, env_list, cfg, lr, me, i)
+                hb.set(state="evaluating")
+                ev = trainer.evaluate(tr.agent, env_list, cfg, i)
+                parent = {}
+                if cfg.selection == "parent":
+                    # The parent competes on the same episodes; every member scores it, so the
+                    # selection does not depend on any one member's deposit being there.
+                    pe = trainer.evaluate(start, env_list, cfg, i)
+                    parent = {"parent_eval_return": pe.mean, "parent_eval_score": pe.score,
+                              "parent_sha256": prev["agent_sha256"],
+                              "parent_eval_seconds": pe.seconds, "parent_eval_steps": pe.steps}
+                metrics = ev.summary() | parent | {
+                    "learning_rate": lr,
+                    "train_steps": tr.steps, "train_seconds": tr.seconds,
+                    "train_return_mean": sum(tr.episode_returns) / len(tr.episode_returns),
+                    "eval_steps": ev.steps, "eval_seconds": ev.seconds,
+                    "grad_norm": tr.grad_norms[-1],
+                    "parent": {"iteration": i - 1, "member": prev.get("member")},
+                    "host": socket.gethostname(), "pid": os.getpid(), "time": time.time(),
+                }
+                pool.deposit(paths, i, me, tr.agent, metrics)
+                mine = ev.mean
+                hb.update(last_return=mine)
+            hb.set(state="waiting", iteration=i)
+            res = pool.barrier(paths, i, cfg, me, like, quorum, mc.barrier_timeout, liveness,
+                               poll_max=mc.poll_max_for(cfg.pool_size))
+            pool.fsutil.write_json(paths.wait_json(i, me),
+                                   {"iteration": i, "member": me, "wait_seconds": res.waited,
+                                    "resumed_at": time.time()}, durable=False)
+            sel = res.selection
+            pool.update_best(paths, sel)  # every member: a kill of the selection's writer must not lose it
+            if res.created and i - mc.keep_iterations >= 1:
+                pool.collect_garbage(paths, i - mc.keep_iterations)
+            log.info("iteration %d: selected %s (eval return %s); mine %s; waited %.3fs",
+                     i, describe_winner(sel), _fmt(sel.get("eval_return")), _fmt(mine), res.waited)
+            board.record(i, sel, metrics, res.waited)
+            lr = _next_learning_rate(paths, cfg, mc, sel, lr)
+            # written with the next state change (training, a moment from now) or the final one
+            hb.update(selected=sel.get("member"), selected_return=sel.get("eval_return"), learning_rate=lr)
+            prev = sel
+            i += 1
+    finally:
+        board.close()  # flushes what the last seconds recorded, on every way out
 
 
 def _deposit_lr(paths: pool.Paths, i: int, m: int) -> float | None:

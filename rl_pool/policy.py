@@ -97,13 +97,11 @@ def param_shapes(spec: PolicySpec, obs_dim: int, act_dim: int) -> dict[str, tupl
 
 def init_bias(link: str, shape: float) -> float:
     """The output bias that makes ``alpha = beta = shape`` (> 1): the link's inverse at ``shape - 1``."""
-    if not (math.isfinite(shape) and shape > 1.0):
-        raise ValueError(f"an initial Beta shape must be > 1, got {shape}")
+    if not (math.isfinite(shape) and 1.0 < shape <= 1.0 + math.exp(Z_MAX)):
+        raise ValueError(f"an initial Beta shape must be > 1 and <= 1 + e^{Z_MAX:g}, got {shape}")
     if link == "exp":
-        if shape - 1.0 > math.exp(Z_MAX):
-            raise ValueError(f"an initial Beta shape must be <= 1 + e^{Z_MAX:g} with the exp link, got {shape}")
         return math.log(shape - 1.0)
-    return math.log(math.expm1(shape - 1.0))  # softplus^-1
+    return math.log(math.expm1(shape - 1.0)) if shape - 1.0 < 30 else shape - 1.0  # softplus^-1 (~identity)
 
 
 def init_params(spec: PolicySpec, obs_dim: int, act_dim: int, seed: int = 0,

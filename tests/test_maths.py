@@ -129,7 +129,7 @@ def test_initial_shape_sets_alpha_and_beta_everywhere(kind, hidden, link):
     # no shape: the same parameters as ever (committed agents and histories replay)
     plain = policy.init_params(spec, 11, 3, seed=2)
     assert all(np.array_equal(plain[k], v) for k, v in policy.init_params(spec, 11, 3, seed=2, shape=None).items())
-    for bad in (1.0, 0.5, float("nan")):
+    for bad in (1.0, 0.5, float("nan"), 1e6):
         with pytest.raises(ValueError):
             policy.init_params(spec, 11, 3, seed=2, shape=bad)
 

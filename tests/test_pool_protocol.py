@@ -282,9 +282,9 @@ def test_the_member_that_sees_every_deposit_selects_the_others_wait_on_the_decis
     assert 3 <= len(listings) <= 5, listings
 
 
-def test_a_held_directory_is_opened_once_and_reads_below_it_stay_bounded(tmp_path):
-
-
+def test_a_held_directory_is_walked_to_once_and_reads_below_it_stay_bounded(tmp_path):
+    """Under a hold, each read or listing opens the held directory afresh ("." relative to it: one
+    open, which on NFS revalidates the directory) instead of walking pool/iterations/000001 again."""
     paths, _ = make_pool(tmp_path / "p", pool_size=2)
     _deposit(paths, 1, 0, 1.0)
     d = paths.iteration(1)
@@ -305,10 +305,12 @@ def test_a_held_directory_is_opened_once_and_reads_below_it_stay_bounded(tmp_pat
                 assert pool.read_metrics(paths, 1, 0)["eval_return"] == 1.0
                 with pytest.raises(ValueError, match="refused"):
                     pool.read_metrics(paths, 1, 1)
-            assert len(opened) == 3
-            for _ in range(3):  # listings from one held descriptor: each starts at the top again
+            assert opened[3:] == ["."] * 10
+            for _ in range(3):  # listings from the held directory: each complete
                 assert pool.present(paths, 1, 2) == {0, 1}  # by name; selection then skips the link
-            assert len(opened) == 3
+            assert opened[3:] == ["."] * 13
+            assert pool.read_selected(paths, 1) is None  # the decision poll: one open, one lookup
+            assert opened[3:] == ["."] * 14
         held_reads = len(opened)
         pool.read_metrics(paths, 1, 0)
         assert len(opened) == held_reads + 3  # walked from the root again
