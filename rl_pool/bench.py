@@ -102,12 +102,48 @@ def throughput(args) -> None:
     print(f"  ratio linear member / unwrapped loop            {m / u:9.2f}")
     print(f"  ratio linear member / env cost only             {m / z:9.2f}   (target >= 0.9)")
     print(f"  ratio linear member / env cost, moving          {m / mv:9.2f}")
+    roll, replay = _replay_reference(lin, args.repeats)
+    print(f"  the trained linear member's rollout alone         {roll:9.0f} steps/s   (10 envs in lockstep, sampling)")
+    print(f"  its own actions replayed on env.unwrapped       {replay:9.0f} steps/s   (the same physics, no policy)")
+    print(f"  ratio rollout / replay of its actions           {roll / replay:9.2f}")
+    print(f"  ratio linear member's training / that replay    {m / replay:9.2f}   (gradient steps included)")
     if "mlp" in setups:
         mlp = setups["mlp"]
         mm = statistics.median(mlp["rates"])
         print(f"  one {mlp['cfg'].spec.describe()} member's training {mm:9.0f} steps/s")
         print(f"  first iteration incl. JIT compile               {mlp['cold']:9.0f} steps/s")
         print(f"  ratio mlp member / linear member                {mm / m:9.2f}   (target >= 0.8)")
+
+
+def _replay_reference(su: dict, repeats: int) -> tuple[float, float]:
+    """Steps/s of the trained member's rollout (``trainer``'s episodes: lockstep envs, Beta draws,
+    recording) and of replaying the very actions it took on ``env.unwrapped`` from the same resets.
+    MuJoCo is deterministic, so the replay retraces the same trajectories: it is the env's own cost
+    for exactly this workload (a policy that drives a body into its joint limits costs MuJoCo more
+    than a still or randomly twitching one)."""
+    import numpy as np
+
+    from .rollout import run_episodes
+
+    agent, cfg, env_list = su["agent"], su["cfg"], su["envs"]
+    seeds = list(range(1_000_000, 1_000_000 + cfg.batch_episodes))
+    T = agent.meta.max_episode_steps
+    span = agent.high - agent.low
+    rolls, replays = [], []
+    for rep in range(repeats):
+        t0 = time.perf_counter()
+        b = run_episodes(env_list, agent.params, agent.spec, agent.norm, agent.low, agent.high, seeds, T,
+                         np.random.default_rng(rep), deterministic=False)
+        rolls.append(b.steps / (time.perf_counter() - t0))
+        actions = [list(agent.low + b.u[k, :b.lengths[k]] * span) for k in range(len(seeds))]
+        env = env_list[0]
+        t0 = time.perf_counter()
+        for k, seed in enumerate(seeds):
+            env.reset(seed=seed)
+            for a in actions[k]:
+                env.step(a)
+        replays.append(b.steps / (time.perf_counter() - t0))
+    return statistics.median(rolls), statistics.median(replays)
 
 
 def _run_pool(root: str, n: int, iterations: int, extra: list[str]) -> dict:
