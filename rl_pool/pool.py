@@ -803,8 +803,10 @@ class BarrierResult:
 
 
 #: Listings of a waiting member's iteration directory: right after its deposit, then after gaps
-#: doubling from LIST_FIRST to LIST_MAX seconds (docs/cluster.md: "Listings").
-LIST_FIRST, LIST_MAX = 0.05, 1.0
+#: doubling from LIST_FIRST to LIST_MAX seconds (docs/cluster.md: "Listings"). A timed listing
+#: that shows every deposit waits LIST_GRACE more for the last depositor's decision before
+#: selecting itself (a second selection is harmless but reads N files).
+LIST_FIRST, LIST_MAX, LIST_GRACE = 0.05, 1.0, 0.05
 
 
 def barrier(paths: Paths, i: int, cfg: PoolConfig, me: int, like: Agent, quorum: int,
@@ -828,7 +830,7 @@ def barrier(paths: Paths, i: int, cfg: PoolConfig, me: int, like: Agent, quorum:
     delay = 0.001
     next_list, list_gap = t0, LIST_FIRST
     have: set[int] = set()
-    reason = None
+    reason, listed, all_seen = None, False, False
     with paths.holding(paths.iteration(i)):
         while True:
             sel = read_selected(paths, i)
@@ -839,8 +841,12 @@ def barrier(paths: Paths, i: int, cfg: PoolConfig, me: int, like: Agent, quorum:
                 next_list, list_gap = now + list_gap, min(2 * list_gap, LIST_MAX)
                 have = present(paths, i, cfg.pool_size)
                 if len(have) == cfg.pool_size:
-                    reason = "complete"
-                    break
+                    if not listed or all_seen:  # right after our deposit, or still undecided after the grace
+                        reason = "complete"
+                        break
+                    all_seen, next_list = True, now + LIST_GRACE
+                    continue
+                listed = True
                 missing = sorted(set(range(cfg.pool_size)) - have)
                 if len(have) >= quorum:
                     why = [liveness.stale(m) for m in missing]

@@ -282,6 +282,21 @@ def test_the_member_that_sees_every_deposit_selects_the_others_wait_on_the_decis
     assert 3 <= len(listings) <= 5, listings
 
 
+def test_a_waiting_member_selects_when_the_last_depositor_does_not(tmp_path):
+    """The last deposit appears but its writer never selects (killed, or its listing lagged): the
+    waiting member's timed listing sees every deposit, waits the grace for a decision, then selects."""
+    paths, cfg = make_pool(tmp_path / "p", pool_size=2)
+    _deposit(paths, 1, 0, 1.0)
+    threading.Timer(0.3, lambda: _deposit(paths, 1, 1, 2.0)).start()
+    t0 = time.monotonic()
+    res = pool.barrier(paths, 1, cfg, 0, _like(paths), quorum=2, timeout=30,
+                       liveness=pool.Liveness(paths, 60), poll_max=0.01)
+    waited = time.monotonic() - t0
+    assert res.created and res.selection["member"] == 1 and res.selection["quorum_reason"] == "complete"
+    # listings at 0, 0.05, 0.15, 0.35 (sees both), + grace 0.05: well before the next timed listing
+    assert 0.35 <= waited < 0.75, waited
+
+
 def test_a_held_directory_is_walked_to_once_and_reads_below_it_stay_bounded(tmp_path):
     """Under a hold, each read or listing opens the held directory afresh ("." relative to it: one
     open, which on NFS revalidates the directory) instead of walking pool/iterations/000001 again."""
