@@ -25,10 +25,9 @@ from . import fsutil
 from .threads import cap_threads, capped_environ
 
 
-def _plain_loop(env_id: str, steps: int, unwrapped: bool, constant: bool = False, drawn: bool = False) -> float:
-    """Env steps per second of a bare loop: random actions drawn in the loop (gymnasium's sampler),
-    a ``constant`` zero action, or actions ``drawn`` before the clock starts (Beta(2, 2), the
-    initial policy's, over the action range), so only the env's own work is timed."""
+def _plain_loop(env_id: str, steps: int, unwrapped: bool, constant: bool = False) -> float:
+    """Env steps per second of a bare loop: random actions drawn in the loop (gymnasium's sampler)
+    or a ``constant`` zero action."""
     import gymnasium as gym
     import numpy as np
 
@@ -40,10 +39,6 @@ def _plain_loop(env_id: str, steps: int, unwrapped: bool, constant: bool = False
     limit = gym.spec(env_id).max_episode_steps
     zero = np.zeros(env.action_space.shape)
     sample = (lambda: zero) if constant else env.action_space.sample
-    if drawn:
-        low, high = env.action_space.low.astype(np.float64), env.action_space.high.astype(np.float64)
-        acts = list(low + np.random.default_rng(0).beta(2.0, 2.0, (steps, low.size)) * (high - low))
-        sample = iter(acts).__next__
     t0 = time.perf_counter()
     k = 0
     for _ in range(steps):
@@ -73,12 +68,11 @@ def throughput(args) -> None:
         first = trainer.train(agent, env_list, cfg, 0.1, 0, 1)
         setups[kind] = {"cfg": cfg, "agent": first.agent, "envs": env_list, "rates": [],
                         "cold": first.steps / (time.perf_counter() - t0)}
-    plain, raw, bare, moving = [], [], [], []
+    plain, raw, bare = [], [], []
     for rep in range(args.repeats):
         plain.append(_plain_loop(args.env, args.steps, unwrapped=False))
         raw.append(_plain_loop(args.env, args.steps, unwrapped=True))
         bare.append(_plain_loop(args.env, args.steps, unwrapped=True, constant=True))
-        moving.append(_plain_loop(args.env, args.steps, unwrapped=True, drawn=True))
         for su in setups.values():
             steps = secs = 0.0
             while steps < args.steps:
@@ -87,7 +81,7 @@ def throughput(args) -> None:
                 steps += r.steps
                 secs += r.seconds
             su["rates"].append(steps / secs)
-    p, u, z, mv = (statistics.median(x) for x in (plain, raw, bare, moving))
+    p, u, z = (statistics.median(x) for x in (plain, raw, bare))
     lin = setups["linear"]
     m = statistics.median(lin["rates"])
     print(f"env {args.env}: {lin['cfg'].batch_episodes} envs in lockstep, {lin['cfg'].train_episodes} episodes "
@@ -95,13 +89,11 @@ def throughput(args) -> None:
     print(f"  plain gymnasium env.step loop, random actions   {p:9.0f} steps/s")
     print(f"  same, on env.unwrapped (no wrappers)            {u:9.0f} steps/s")
     print(f"  env.unwrapped, constant action (env cost only)  {z:9.0f} steps/s")
-    print(f"  env.unwrapped, pre-drawn Beta(2,2) actions      {mv:9.0f} steps/s   (the env's cost when it moves)")
     print(f"  one linear member's training                    {m:9.0f} steps/s")
     print(f"  first iteration incl. JIT compile               {lin['cold']:9.0f} steps/s")
     print(f"  ratio linear member / plain loop                {m / p:9.2f}")
     print(f"  ratio linear member / unwrapped loop            {m / u:9.2f}")
     print(f"  ratio linear member / env cost only             {m / z:9.2f}   (target >= 0.9)")
-    print(f"  ratio linear member / env cost, moving          {m / mv:9.2f}")
     roll, replay = _replay_reference(lin, args.repeats)
     print(f"  the trained linear member's rollout alone         {roll:9.0f} steps/s   (10 envs in lockstep, sampling)")
     print(f"  its own actions replayed on env.unwrapped       {replay:9.0f} steps/s   (the same physics, no policy)")
@@ -123,19 +115,19 @@ def _replay_reference(su: dict, repeats: int) -> tuple[float, float]:
     than a still or randomly twitching one)."""
     import numpy as np
 
+    from .policy import to_action
     from .rollout import run_episodes
 
     agent, cfg, env_list = su["agent"], su["cfg"], su["envs"]
     seeds = list(range(1_000_000, 1_000_000 + cfg.batch_episodes))
     T = agent.meta.max_episode_steps
-    span = agent.high - agent.low
     rolls, replays = [], []
     for rep in range(repeats):
         t0 = time.perf_counter()
         b = run_episodes(env_list, agent.params, agent.spec, agent.norm, agent.low, agent.high, seeds, T,
                          np.random.default_rng(rep), deterministic=False)
         rolls.append(b.steps / (time.perf_counter() - t0))
-        actions = [list(agent.low + b.u[k, :b.lengths[k]] * span) for k in range(len(seeds))]
+        actions = [list(to_action(b.u[k, :b.lengths[k]], agent.low, agent.high)) for k in range(len(seeds))]
         env = env_list[0]
         t0 = time.perf_counter()
         for k, seed in enumerate(seeds):

@@ -185,10 +185,9 @@ class Root(str):
     read is) and, in that thread, reads and listings below ``d`` start from
     that descriptor (``openat(held, ".")``, then the file): on a network
     filesystem a lookup of each path component is a round trip to the server,
-    made once instead of once per file. The
-    held descriptor keeps naming the directory it opened even if a stranger
-    renames another in its place, which is what a walk from the root would
-    have found when the hold began.
+    made once instead of once per file. The held descriptor keeps naming the
+    directory it opened even if a stranger renames another in its place, which
+    is what a walk from the root would have found when the hold began.
     """
 
     def __new__(cls, path):
@@ -213,16 +212,15 @@ class Root(str):
             return
         try:
             fd = _open_dir(d, self)
-        except OSError:
-            fd = None  # not there (yet) or refused: reads walk from the root and say why
-        if fd is not None:
-            held[d] = fd
+        except OSError:  # not there (yet) or refused: reads walk from the root and say why
+            yield
+            return
+        held[d] = fd
         try:
             yield
         finally:
-            if held.get(d) == fd and fd is not None:
-                del held[d]
-                os.close(fd)
+            del held[d]
+            os.close(fd)
 
 
 def _open_dir(path: str, root: str | None, target: str | None = None) -> int:

@@ -257,7 +257,7 @@ def _loop(paths: pool.Paths, cfg: PoolConfig, mc: MemberConfig, hb: pool.Heartbe
                 hb.update(last_return=mine)
             hb.set(state="waiting", iteration=i)
             res = pool.barrier(paths, i, cfg, me, like, quorum, mc.barrier_timeout, liveness,
-                               poll_max=mc.poll_max_for(cfg.pool_size))
+                               poll_max=mc.poll_max_for(cfg.pool_size), previous=prev)
             pool.fsutil.write_json(paths.wait_json(i, me),
                                    {"iteration": i, "member": me, "wait_seconds": res.waited,
                                     "resumed_at": time.time()}, durable=False)

@@ -117,18 +117,18 @@ def init_params(spec: PolicySpec, obs_dim: int, act_dim: int, seed: int = 0,
     Hidden layers draw ``N(0, 1/fan_in)`` weights (LeCun's scaling, which keeps
     ``tanh`` units out of saturation) and zero biases.
     """
-    shape_, shapes = shape, param_shapes(spec, obs_dim, act_dim)
+    shapes = param_shapes(spec, obs_dim, act_dim)
     rng = np.random.Generator(np.random.PCG64(np.random.SeedSequence([int(seed), _INIT_TAG])))
     params = {}
     n_layers = len(spec.hidden) + 1
-    for name, shape in shapes.items():
+    for name, dims in shapes.items():
         last = name in ("w", f"w{n_layers - 1}", f"b{n_layers - 1}")
         if last or name.startswith("b"):
-            params[name] = np.zeros(shape)
+            params[name] = np.zeros(dims)
         else:
-            params[name] = rng.normal(0.0, 1.0 / math.sqrt(shape[0]), size=shape)
-    if shape_ is not None:
-        bias = init_bias(spec.link, shape_)
+            params[name] = rng.normal(0.0, 1.0 / math.sqrt(dims[0]), size=dims)
+    if shape is not None:
+        bias = init_bias(spec.link, shape)
         if spec.kind == "linear":
             params["w"][-1] = bias
         else:

@@ -811,7 +811,7 @@ LIST_FIRST, LIST_MAX, LIST_GRACE = 0.05, 1.0, 0.05
 
 def barrier(paths: Paths, i: int, cfg: PoolConfig, me: int, like: Agent, quorum: int,
             timeout: float, liveness: Liveness, poll_max: float = 0.01,
-            stop: threading.Event | None = None) -> BarrierResult:
+            stop: threading.Event | None = None, previous: dict | None = None) -> BarrierResult:
     """Wait for iteration ``i``'s deposits, then select (or adopt the selection already made).
 
     A waiting member polls one name, the iteration's decision (a lookup, not a
@@ -825,6 +825,7 @@ def barrier(paths: Paths, i: int, cfg: PoolConfig, me: int, like: Agent, quorum:
     passed (checked at listing times). Without a quorum after ``timeout`` it
     raises :class:`BarrierTimeout`. Two members selecting at once is harmless:
     selection is a pure function of the files and the decision is create-once.
+    ``previous``: the selection of ``i - 1`` if the caller has it (else it is read).
     """
     t0 = time.monotonic()
     delay = 0.001
@@ -871,7 +872,7 @@ def barrier(paths: Paths, i: int, cfg: PoolConfig, me: int, like: Agent, quorum:
             delay = min(delay * 2, poll_max)
         if reason != "complete":
             log.warning("iteration %d: %s", i, reason)
-        previous = read_selected(paths, i - 1)
+        previous = previous or read_selected(paths, i - 1)
         if previous is None:
             raise RuntimeError(f"iteration {i - 1} has no readable selection")
         selection = select(paths, i, cfg, like, have, reason, previous)

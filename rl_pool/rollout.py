@@ -61,7 +61,7 @@ def run_episodes(envs, params: dict, spec: policy.PolicySpec, norm, low, high, s
     returns = np.zeros(n)
     lengths = np.zeros(n, dtype=np.int64)
     active = np.arange(n)
-    live = list(range(n))  # ``active`` as Python ints, for the per-env loop
+    live = active.tolist()  # ``active`` as Python ints, for the per-env loop
     all_active = True
     step_fns = [env.step for env in envs[:n]]
 
@@ -93,7 +93,7 @@ def run_episodes(envs, params: dict, spec: policy.PolicySpec, norm, low, high, s
         lengths[active] += 1
         if ended:
             active = np.delete(active, ended)
-            live = [idx for k, idx in enumerate(live) if k not in set(ended)]
+            live = active.tolist()
             all_active = False
             if active.size == 0:
                 break
