@@ -36,3 +36,42 @@ class Stopped(BaseException):
 
         super().__init__(signal.Signals(signum).name)
         self.signum = signum
+
+
+class SignalLatch:
+    """Turns the first of a process's stop signals into an exception in its main thread, and keeps it.
+
+    Python runs a signal handler between two bytecodes of the main thread, and those may belong
+    to a finaliser: an abandoned generator being closed, a ``__del__``. An exception raised there
+    is only printed ("Exception ignored in ...") and lost, so a process that acted on its first
+    signal alone would run on. ``handler`` raises ``make(signum)`` for the first signal and
+    ignores later ones (a second Ctrl-C must not cut a clean shutdown short); the process's
+    loops call :meth:`check`, which raises it again while it has not been acted on.
+    """
+
+    def __init__(self, make):
+        self.make = make
+        self.signum: int | None = None
+
+    def handler(self, signum, frame) -> None:
+        if self.signum is None:
+            self.signum = signum
+            raise self.make(signum)
+
+    def check(self) -> None:
+        if self.signum is not None:
+            raise self.make(self.signum)
+
+    def install(self, signums) -> dict:
+        """Handle ``signums`` (from a clean slate); returns the old handlers for ``restore``."""
+        import signal
+
+        self.signum = None
+        return {s: signal.signal(s, self.handler) for s in signums}
+
+    @staticmethod
+    def restore(old: dict) -> None:
+        import signal
+
+        for s, h in old.items():
+            signal.signal(s, h)

@@ -20,7 +20,7 @@ import time
 
 from . import fsutil, pool, progress, status
 from .config import MemberConfig
-from .errors import UsageError
+from .errors import SignalLatch, UsageError
 from .threads import capped_environ
 
 DEFAULT_RATIO = 0.1  # the first member's learning rate relative to the others'
@@ -69,9 +69,7 @@ def launch(pool_dir: str, requested: dict, member_opts: dict, learning_rates: li
     interrupted = False
     # Members run in their own sessions, so the launcher must pass on every way it can be told
     # to stop (Ctrl-C, kill, a closed terminal): otherwise they would train on unattended.
-    global _stopping
-    _stopping = False
-    old = {s: signal.signal(s, _interrupt) for s in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)}
+    old = _interrupt.install((signal.SIGINT, signal.SIGTERM, signal.SIGHUP))
     try:
         for m, lr in enumerate(lrs):
             cmd = [sys.executable, "-m", "rl_pool", "train", "--pool-dir", paths.root, "--member", str(m),
@@ -89,8 +87,7 @@ def launch(pool_dir: str, requested: dict, member_opts: dict, learning_rates: li
               file=sys.stderr, flush=True)
         codes = _stop_all(procs, signal.SIGTERM)
     finally:
-        for s, h in old.items():
-            signal.signal(s, h)
+        _interrupt.restore(old)
     st = status.status(paths.root)
     b = st["best"]
     print(f"iterations completed {st['iterations_completed']} in {progress.clock(time.time() - started)}; best "
@@ -104,18 +101,10 @@ def launch(pool_dir: str, requested: dict, member_opts: dict, learning_rates: li
     return 1 if failed else 0
 
 
-_stopping = False
-
-
-def _interrupt(signum, frame):
-    # Only the first signal stops the pool: a second Ctrl-C, or the same signal sent to the whole
-    # process group as well (GNU timeout does that), must not cut the members' shutdown short and
-    # leave them training unattended.
-    global _stopping
-    if _stopping:
-        return
-    _stopping = True
-    raise KeyboardInterrupt
+#: Only the first signal stops the pool: a second Ctrl-C, or the same signal sent to the whole
+#: process group as well (GNU timeout does that), must not cut the members' shutdown short and
+#: leave them training unattended. One lost in a finaliser is raised again by the watch loop.
+_interrupt = SignalLatch(lambda signum: KeyboardInterrupt())
 
 
 def _watch(paths, procs, quiet, interval, started, target) -> list[int]:
@@ -134,6 +123,7 @@ def _watch(paths, procs, quiet, interval, started, target) -> list[int]:
                 next_poll = now + 0.5
             if failed or done:
                 break
+            _interrupt.check()
             time.sleep(0.1)
     if failed:
         bad = next(m for m, c in enumerate(codes) if c not in (None, 0))

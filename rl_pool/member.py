@@ -23,7 +23,7 @@ import traceback
 from . import envs, fsutil, pool, tb, trainer
 from .agent import Agent, AgentMeta
 from .config import MemberConfig, PoolConfig
-from .errors import Stopped, UsageError
+from .errors import SignalLatch, Stopped, UsageError
 
 log = logging.getLogger("rl_pool")
 
@@ -34,16 +34,9 @@ EXIT_OK, EXIT_FAILED, EXIT_BARRIER, EXIT_DISK = 0, 1, 3, 4
 DISK_ERRORS = frozenset({errno.ENOSPC, errno.EDQUOT, errno.EROFS, errno.EIO})
 
 
-_stopping = False
-
-
-def _on_signal(signum, frame):
-    # Ctrl-C reaches a member both from the terminal and from its launcher: act on the first only.
-    global _stopping
-    if _stopping:
-        return
-    _stopping = True
-    raise Stopped(signum)
+#: SIGTERM/SIGINT/SIGHUP as Stopped. Ctrl-C reaches a member both from the terminal and from its
+#: launcher: the first counts; a Stopped lost in a finaliser is raised again at the next check.
+_stop = SignalLatch(Stopped)
 
 
 def make_initial(cfg: PoolConfig):
@@ -133,7 +126,7 @@ def run(pool_dir: str, requested: dict, mc: MemberConfig, quiet: bool = False) -
                         extra={"learning_rate": mc.learning_rate, "target": mc.iterations})
     old = {}
     try:
-        old = {s: signal.signal(s, _on_signal) for s in (signal.SIGTERM, signal.SIGINT, signal.SIGHUP)}
+        old = _stop.install((signal.SIGTERM, signal.SIGINT, signal.SIGHUP))
         hb.start()
         _loop(paths, cfg, mc, hb, last + 1)
     except Stopped as exc:
@@ -157,8 +150,7 @@ def run(pool_dir: str, requested: dict, mc: MemberConfig, quiet: bool = False) -
             sys.stderr.write(tb)
         return EXIT_FAILED
     finally:
-        for s, h in old.items():
-            signal.signal(s, h)
+        _stop.restore(old)
     hb.stop("finished")
     log.info("done: iteration %d selected", mc.iterations)
     return EXIT_OK
@@ -218,6 +210,7 @@ def _loop(paths: pool.Paths, cfg: PoolConfig, mc: MemberConfig, hb: pool.Heartbe
     try:
         i = first
         while i <= mc.iterations:
+            _stop.check()
             if pool.read_selected(paths, i) is not None:
                 # Decided without us (we were stopped or slow): rejoin where the pool is now.
                 i = max(pool.last_selected(paths) + 1, i + 1)
@@ -257,7 +250,7 @@ def _loop(paths: pool.Paths, cfg: PoolConfig, mc: MemberConfig, hb: pool.Heartbe
                 hb.update(last_return=mine)
             hb.set(state="waiting", iteration=i)
             res = pool.barrier(paths, i, cfg, me, like, quorum, mc.barrier_timeout, liveness,
-                               poll_max=mc.poll_max_for(cfg.pool_size), previous=prev)
+                               poll_max=mc.poll_max_for(cfg.pool_size), previous=prev, check=_stop.check)
             pool.fsutil.write_json(paths.wait_json(i, me),
                                    {"iteration": i, "member": me, "wait_seconds": res.waited,
                                     "resumed_at": time.time()}, durable=False)

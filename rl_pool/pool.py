@@ -36,6 +36,7 @@ import socket
 import stat
 import threading
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 
 from . import claim, fsutil
@@ -811,7 +812,7 @@ LIST_FIRST, LIST_MAX, LIST_GRACE = 0.05, 1.0, 0.05
 
 def barrier(paths: Paths, i: int, cfg: PoolConfig, me: int, like: Agent, quorum: int,
             timeout: float, liveness: Liveness, poll_max: float = 0.01,
-            stop: threading.Event | None = None, previous: dict | None = None) -> BarrierResult:
+            check: Callable[[], None] | None = None, previous: dict | None = None) -> BarrierResult:
     """Wait for iteration ``i``'s deposits, then select (or adopt the selection already made).
 
     A waiting member polls one name, the iteration's decision (a lookup, not a
@@ -825,7 +826,8 @@ def barrier(paths: Paths, i: int, cfg: PoolConfig, me: int, like: Agent, quorum:
     passed (checked at listing times). Without a quorum after ``timeout`` it
     raises :class:`BarrierTimeout`. Two members selecting at once is harmless:
     selection is a pure function of the files and the decision is create-once.
-    ``previous``: the selection of ``i - 1`` if the caller has it (else it is read).
+    ``previous``: the selection of ``i - 1`` if the caller has it (else it is read). ``check``:
+    called between polls; it may raise to stop the wait (a stop signal).
     """
     t0 = time.monotonic()
     delay = 0.001
@@ -866,8 +868,8 @@ def barrier(paths: Paths, i: int, cfg: PoolConfig, me: int, like: Agent, quorum:
                     raise BarrierTimeout(
                         f"iteration {i}: only {len(have)} of {cfg.pool_size} deposits after {timeout:.0f}s "
                         f"(quorum {quorum}); restart to resume")
-            if stop is not None and stop.is_set():
-                raise KeyboardInterrupt
+            if check is not None:
+                check()
             time.sleep(max(0.0, min(delay, next_list - time.monotonic())))
             delay = min(delay * 2, poll_max)
         if reason != "complete":

@@ -19,7 +19,7 @@ import time
 from dataclasses import dataclass, field
 
 from . import pool, status
-from .errors import UsageError
+from .errors import SignalLatch, UsageError
 
 #: Heartbeat states of a member that is running.
 ACTIVE = ("starting", "training", "evaluating", "waiting")
@@ -400,15 +400,14 @@ def watch(pool_dir: str, interval: float | None = None, recent: int = 5, stream=
     period = (interval if interval is not None else refresh) if is_live else min(interval or 10.0, refresh)
     tracker = Tracker(pool_dir, recent=recent)
 
-    def stop(signum, frame):
-        raise KeyboardInterrupt
-
-    old = signal.signal(signal.SIGTERM, stop)
+    stop = SignalLatch(lambda signum: KeyboardInterrupt())
+    old = stop.install((signal.SIGTERM,))
     try:
         with Display(stream, interval=interval if interval is not None else 10.0, live=is_live) as d:
             try:
                 while True:
                     d.update(tracker.poll())
+                    stop.check()
                     time.sleep(period)
             except KeyboardInterrupt:
                 try:  # show how it ended (members stopped or finished), not the state of the last poll
@@ -416,5 +415,5 @@ def watch(pool_dir: str, interval: float | None = None, recent: int = 5, stream=
                 except (KeyboardInterrupt, UsageError):
                     pass
     finally:
-        signal.signal(signal.SIGTERM, old)
+        stop.restore(old)
     return 0

@@ -16,6 +16,7 @@ BASE_LR="${BASE_LR:-0.1}"
 ITERATIONS="${ITERATIONS:-500}"
 PROGRESS="${PROGRESS:-1}"
 PROGRESS_INTERVAL="${PROGRESS_INTERVAL:-}"   # default: 0.5 s redraws on a terminal, 10 s between lines otherwise
+STOP_GRACE="${STOP_GRACE:-30}"   # seconds a member has to stop on TERM before it gets KILL (files stay whole)
 # rl-pool: $RL_POOL, else this repo's .venv, else whatever is on PATH
 HERE="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
 RL_POOL="${RL_POOL:-}"
@@ -45,10 +46,12 @@ out_of() { echo "$POOL_DIR/logs/member-$(printf %03d "$1").out"; }
 pids=()
 watcher=""
 stopped=0
+kill_at=""
 stop_members() {
     # SIGTERM, not SIGINT: bash starts background jobs with SIGINT ignored, so a member
     # that has not yet installed its handler would miss an INT; it stops cleanly on TERM.
     kill -TERM "${pids[@]}" 2>/dev/null
+    [ -n "$kill_at" ] || kill_at=$((SECONDS + STOP_GRACE))
 }
 on_signal() {
     stopped=1
@@ -84,6 +87,12 @@ while [ "$left" -gt 0 ]; do
             stop_members
         fi
     done
+    if [ "$left" -gt 0 ] && [ -n "$kill_at" ] && [ "$SECONDS" -ge "$kill_at" ]; then
+        # Every pool file is written whole or not at all, so KILL loses nothing on disk.
+        echo "pool.sh: $left member(s) still running ${STOP_GRACE}s after TERM; sending KILL" >&2
+        kill -KILL "${pids[@]}" 2>/dev/null
+        kill_at=$((SECONDS + 3600))
+    fi
     [ "$left" -gt 0 ] && sleep 0.2
 done
 if [ -n "$watcher" ]; then
