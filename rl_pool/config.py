@@ -52,6 +52,10 @@ class PoolConfig:
     selection: str = opt("parent", "who competes for an iteration: the branches and the parent re-scored on "
                                    "the same episodes (the pool never loses ground), or branches only",
                          ("parent", "branches"))
+    selection_margin: float = opt(0.0, "with --selection parent: a branch replaces the parent only if its "
+                                       "per-episode evaluation scores beat the parent's on the same episodes "
+                                       "by K standard errors of the differences (0: any branch at least as "
+                                       "good)", added=True)
     revert_after: int = opt(0, "go back to the best selected agent after K iterations without a new best "
                                "(0: never)")
     seed: int = opt(0, "root seed; every random draw derives from (seed, member, iteration)")
@@ -103,6 +107,8 @@ class PoolConfig:
                 init_bias(self.link, self.init_shape)
             except ValueError as exc:
                 raise UsageError(f"--init-shape: {exc}") from None
+        if not (math.isfinite(self.selection_margin) and self.selection_margin >= 0):
+            raise UsageError(f"--selection-margin must be a finite number >= 0, got {self.selection_margin}")
         if self.revert_after < 0:
             raise UsageError(f"--revert-after must be >= 0, got {self.revert_after}")
         try:

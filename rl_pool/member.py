@@ -234,6 +234,7 @@ def _loop(paths: pool.Paths, cfg: PoolConfig, mc: MemberConfig, hb: pool.Heartbe
                     # selection does not depend on any one member's deposit being there.
                     pe = trainer.evaluate(start, env_list, cfg, i)
                     parent = {"parent_eval_return": pe.mean, "parent_eval_score": pe.score,
+                              "parent_eval_returns": pe.returns, "parent_eval_lengths": pe.lengths,
                               "parent_sha256": prev["agent_sha256"],
                               "parent_eval_seconds": pe.seconds, "parent_eval_steps": pe.steps}
                 metrics = ev.summary() | parent | {

@@ -489,12 +489,42 @@ def parent_score(docs: list[dict], parent_sha: str, shifted: bool = False) -> tu
     evaluation seeds, so all honest reports agree; the lowest member's report
     that names the right parent counts.
     """
+    doc = _parent_report(docs, parent_sha, shifted)
+    return None if doc is None else (float(doc["parent_eval_return"]),
+                                     float(doc["parent_eval_score" if shifted else "parent_eval_return"]))
+
+
+def _parent_report(docs: list[dict], parent_sha: str, shifted: bool) -> dict | None:
     for doc in docs:
         ret = doc.get("parent_eval_return")
         score = doc.get("parent_eval_score") if shifted else ret
         if doc.get("parent_sha256") == parent_sha and _finite(ret) and _finite(score):
-            return float(ret), float(score)
+            return doc
     return None
+
+
+def episode_scores(doc: dict, n: int, shift: float, prefix: str = "") -> list[float] | None:
+    """The per-episode scores (return, minus ``shift`` per step) of the ``n`` evaluation episodes
+    a deposit reports (``prefix`` ``"parent_"``: of the parent), or None if it does not report
+    them whole."""
+    rets, lens = doc.get(prefix + "eval_returns"), doc.get(prefix + "eval_lengths")
+    if not (isinstance(rets, list) and len(rets) == n and all(_finite(r) for r in rets)):
+        return None
+    if not shift:
+        return [float(r) for r in rets]
+    if not (isinstance(lens, list) and len(lens) == n
+            and all(isinstance(k, int) and not isinstance(k, bool) and k >= 0 for k in lens)):
+        return None
+    return [float(r) - shift * k for r, k in zip(rets, lens, strict=True)]
+
+
+def paired_margin(branch: list[float], parent: list[float]) -> tuple[float, float]:
+    """``(mean, standard error)`` of the per-episode differences branch - parent on common episodes."""
+    d = [b - p for b, p in zip(branch, parent, strict=True)]
+    n = len(d)
+    mean = math.fsum(d) / n
+    se = math.sqrt(math.fsum((x - mean) ** 2 for x in d) / (n - 1) / n) if n > 1 else 0.0
+    return mean, se
 
 
 def _finite(x) -> bool:
@@ -517,6 +547,14 @@ def select(paths: Paths, i: int, cfg: PoolConfig, like: Agent, members: set[int]
     (``cfg.revert_after`` iterations passed without a new best: back to the
     best selected agent) or ``carried`` (no valid deposit: the parent carries over).
     A branch that ties with the parent wins: it has not lost ground.
+
+    ``cfg.selection_margin`` K > 0 asks more of a branch: its per-episode scores minus the
+    parent's on the same episodes must average at least K standard errors of those
+    differences (``paired_margin``), so evaluation noise alone rarely replaces the parent with
+    a worse agent; the best-scoring branch that clears it wins, else the parent. Each
+    considered branch then records ``diff`` and ``se``; a branch that does not report its
+    episodes whole cannot clear it. Without the parent's episodes (no deposit reports them)
+    the plain comparison of means applies.
     """
     shifted = bool(cfg.reward_shift)
     considered, skipped, docs = [], [], []
@@ -537,10 +575,21 @@ def select(paths: Paths, i: int, cfg: PoolConfig, like: Agent, members: set[int]
                            "agent_sha256": doc["agent_sha256"], "doc": doc})
     # Only the winner's agent is read and checked (hash, format, shapes): the cost of a selection
     # grows with N small JSON files, not N agents. One that fails its check is skipped with the
-    # reason and the next best is tried, so the result is still a pure function of the files.
-    while considered:
-        top, _ = choose([(c["member"], c["score"]) for c in considered])
-        c = next(c for c in considered if c["member"] == top)
+    # reason (its report of the parent too) and the selection is made again without it, so the
+    # result is still a pure function of the files.
+    while True:
+        report = _parent_report(docs, previous["agent_sha256"], shifted) if cfg.selection == "parent" else None
+        parent_eps = (episode_scores(report, cfg.eval_episodes, cfg.reward_shift, "parent_")
+                      if report is not None and cfg.selection_margin else None)
+        for c in considered:
+            eps = parent_eps and episode_scores(c["doc"], cfg.eval_episodes, cfg.reward_shift)
+            c["diff"], c["se"] = paired_margin(eps, parent_eps) if eps else (None, None)
+        eligible = [c for c in considered if parent_eps is None
+                    or (c["diff"] is not None and c["diff"] >= cfg.selection_margin * c["se"])]
+        if not eligible:
+            break
+        top, _ = choose([(c["member"], c["score"]) for c in eligible])
+        c = next(c for c in eligible if c["member"] == top)
         try:
             read_agent(paths, i, top, c["doc"], like)
             break
@@ -549,21 +598,26 @@ def select(paths: Paths, i: int, cfg: PoolConfig, like: Agent, members: set[int]
             docs.remove(c["doc"])
             skipped.append({"member": top, "reason": str(exc)})
     skipped.sort(key=lambda s: s["member"])
-    out = {"iteration": i, "considered": [{k: c[k] for k in ("member", "eval_return", "score")}
-                                          for c in considered],
+    keys = ("member", "eval_return", "score") + (("diff", "se") if parent_eps is not None else ())
+    out = {"iteration": i, "considered": [{k: c[k] for k in keys} for c in considered],
            "skipped": skipped, "quorum_reason": reason,
            "parent": {"iteration": previous["iteration"], "member": previous.get("member"),
                       "agent_sha256": previous["agent_sha256"]}}
-    parent = parent_score(docs, previous["agent_sha256"], shifted) if cfg.selection == "parent" else None
+    parent = parent_score([report], previous["agent_sha256"], shifted) if report is not None else None
     out["parent"] |= {"eval_return": parent and parent[0], "score": parent and parent[1]}
+    if parent_eps is not None:
+        out["margin"] = cfg.selection_margin
     keep_parent = {"member": None, "agent": previous["agent"], "agent_sha256": previous["agent_sha256"],
                    "eval_return": parent and parent[0], "score": parent and parent[1]}
     if considered:
-        top, _ = choose([(c["member"], c["score"]) for c in considered])
-        best = next(c for c in considered if c["member"] == top)
-        if parent is not None and parent[1] > best["score"]:
-            out |= keep_parent | {"winner": "parent",
-                                  "best_branch": {k: best[k] for k in ("member", "eval_return", "score")}}
+        if eligible:
+            top, _ = choose([(c["member"], c["score"]) for c in eligible])
+            best = next(c for c in eligible if c["member"] == top)
+        else:  # with a margin, no branch cleared it: the parent stays
+            top, _ = choose([(c["member"], c["score"]) for c in considered])
+            best = next(c for c in considered if c["member"] == top)
+        if parent is not None and (not eligible or (parent_eps is None and parent[1] > best["score"])):
+            out |= keep_parent | {"winner": "parent", "best_branch": {k: best[k] for k in keys}}
         else:
             out |= {"winner": "branch", "member": best["member"], "eval_return": best["eval_return"],
                     "score": best["score"], "agent": paths.rel(paths.deposit_npz(i, best["member"])),

@@ -479,3 +479,82 @@ def test_pools_made_before_init_shape_still_read_and_it_shapes_the_initial_agent
     np.testing.assert_allclose(beta, 6.0)
     default, _ = make_initial(PoolConfig(env="Swimmer-v5").validate())
     assert default.to_bytes() != agent.to_bytes()
+
+
+def test_paired_margin_against_numpy():
+    rng = np.random.default_rng(3)
+    b, p = rng.normal(5, 2, 7), rng.normal(4, 2, 7)
+    mean, se = pool.paired_margin(list(b), list(p))
+    d = b - p
+    assert mean == pytest.approx(d.mean(), rel=1e-12)
+    assert se == pytest.approx(d.std(ddof=1) / np.sqrt(len(d)), rel=1e-12)
+    assert pool.paired_margin([3.0], [1.0]) == (2.0, 0.0)  # one episode: no spread to measure
+
+
+def _margin_deposit(paths, i, m, branch_eps, parent_eps, seed, lengths=None, parent_lengths=None):
+    prev = pool.read_selected(paths, i - 1)
+    lengths = lengths or [60] * len(branch_eps)
+    parent_lengths = parent_lengths or [60] * len(parent_eps)
+    doc = {"eval_return": float(np.mean(branch_eps)), "eval_returns": branch_eps, "eval_lengths": lengths,
+           "eval_score": float(np.mean(np.subtract(branch_eps, lengths))),
+           "parent_eval_return": float(np.mean(parent_eps)), "parent_eval_returns": parent_eps,
+           "parent_eval_lengths": parent_lengths,
+           "parent_eval_score": float(np.mean(np.subtract(parent_eps, parent_lengths))),
+           "parent_sha256": prev["agent_sha256"]}
+    pool.deposit(paths, i, m, agent(seed), doc)
+
+
+def test_with_a_selection_margin_a_branch_must_beat_the_parent_by_k_paired_standard_errors(tmp_path):
+    parent = [10.0, 20.0, 30.0, 40.0]
+    lucky = [30.0, 5.0, 45.0, 35.0]   # mean +3.75 over the parent, but se 7.2 of the differences
+    steady = [11.0, 21.5, 31.0, 41.0]  # mean +1.125, se 0.125: better on every episode
+    worse = [9.0, 19.0, 29.0, 39.0]
+    for k, members, want in [(0, {0, 1}, ("branch", 0)),   # k = 0: today's rule, the best mean wins
+                             (1, {0, 1}, ("branch", 1)),   # the steady gain clears 1 se, the lucky one not
+                             (1, {0}, ("parent", None)),   # only the lucky branch: the parent stays
+                             (9, {0, 1}, ("branch", 1)),   # +1.125 >= 9 x 0.125
+                             (10, {0, 1}, ("parent", None))]:
+        paths, cfg = make_pool(tmp_path / f"k{k}-{len(members)}", pool_size=2, selection_margin=k, eval_episodes=4)
+        _margin_deposit(paths, 1, 0, lucky, parent, seed=1)
+        _margin_deposit(paths, 1, 1, steady, parent, seed=2)
+        sel = _decide(paths, cfg, 1, members)
+        assert (sel["winner"], sel["member"]) == want, (k, members)
+        if k:
+            assert sel["margin"] == k
+            diffs = {c["member"]: (c["diff"], c["se"]) for c in sel["considered"]}
+            assert diffs[0] == pytest.approx((3.75, np.std([20, -15, 15, -5], ddof=1) / 2))
+            if 1 in members:
+                assert diffs[1] == pytest.approx((1.125, 0.125))
+        else:
+            assert "margin" not in sel and "diff" not in sel["considered"][0]
+        if want[0] == "parent":  # the best-scoring branch is recorded, with its margin
+            assert sel["best_branch"]["member"] == 0 and sel["best_branch"]["diff"] == pytest.approx(3.75)
+    # a branch worse on every episode never clears a margin; equal to the parent (se 0) it does
+    paths, cfg = make_pool(tmp_path / "w", pool_size=2, selection_margin=2, eval_episodes=4)
+    _margin_deposit(paths, 1, 0, worse, parent, seed=1)
+    _margin_deposit(paths, 1, 1, list(parent), parent, seed=2)
+    sel = _decide(paths, cfg, 1, {0, 1})
+    assert (sel["winner"], sel["member"]) == ("branch", 1)
+
+
+def test_a_selection_margin_uses_shifted_episode_scores_and_needs_whole_episode_reports(tmp_path):
+    paths, cfg = make_pool(tmp_path / "s", pool_size=2, selection_margin=1, reward_shift=1.0)
+    parent, plens = [100.0, 100.0, 100.0], [50, 50, 50]  # scores 50 each
+    # member 0 lives longer (returns +20 per episode) but its shifted scores are 10 lower: no
+    _margin_deposit(paths, 1, 0, [120.0, 121.0, 120.0], parent, seed=1, lengths=[80, 80, 80], parent_lengths=plens)
+    # member 1 reports returns without lengths under a shift: it cannot clear the margin
+    _margin_deposit(paths, 1, 1, [130.0, 131.0, 130.0], parent, seed=2, lengths=[50, 50, 50], parent_lengths=plens)
+    doc = pool.read_metrics(paths, 1, 1)
+    assert pool.episode_scores(doc, 3, 1.0) == [80.0, 81.0, 80.0]
+    assert pool.episode_scores(doc | {"eval_lengths": None}, 3, 1.0) is None
+    assert pool.episode_scores(doc | {"eval_returns": [1.0, float("nan"), 2.0]}, 3, 0.0) is None
+    assert pool.episode_scores(doc, 4, 0.0) is None  # not the pool's number of episodes
+    sel = _decide(paths, cfg, 1, {0, 1})
+    assert (sel["winner"], sel["member"]) == ("branch", 1)
+    assert [c["diff"] for c in sel["considered"]] == pytest.approx([-10.0 + 1 / 3, 30.0 + 1 / 3])
+    # without the parent's episodes (deposits from before the margin): plain means decide
+    paths2, cfg2 = make_pool(tmp_path / "old", pool_size=2, selection_margin=5)
+    _deposit(paths2, 1, 0, 3.0, parent=2.0)
+    _deposit(paths2, 1, 1, 1.0, parent=2.0)
+    sel = _decide(paths2, cfg2, 1, {0, 1})
+    assert (sel["winner"], sel["member"]) == ("branch", 0) and "margin" not in sel
