@@ -226,7 +226,7 @@ def _loop(paths: pool.Paths, cfg: PoolConfig, mc: MemberConfig, hb: pool.Heartbe
                 start = pool.load_selected_agent(paths, i - 1, prev, like=like)
                 hb.set(state="training", iteration=i)
                 tr = trainer.train(start, env_list, cfg, lr, me, i)
-                hb.set(state="evaluating")
+                hb.update(state="evaluating")  # shown by the next periodic beat: one write less per iteration
                 ev = trainer.evaluate(tr.agent, env_list, cfg, i)
                 parent = {}
                 if cfg.selection == "parent":

@@ -25,6 +25,7 @@ adopts it; members read decisions, never the copies.
 
 from __future__ import annotations
 
+import collections
 import errno
 import hashlib
 import json
@@ -369,9 +370,35 @@ def load_selected_agent(paths: Paths, i: int, sel: dict | None = None, like: Age
         data = paths.read_bytes(path, cap)
     except UnsafeFile as exc:
         raise RuntimeError(f"{path} (selected in iteration {i}) is refused: {exc.strerror}") from None
-    if sha256(data) != sel.get("agent_sha256"):
+    digest = sha256(data)
+    if digest != sel.get("agent_sha256"):
         raise RuntimeError(f"{path} does not match the hash recorded in {paths.selected(i)}")
-    return Agent.from_bytes(data, source=path)
+    return parse_agent(data, digest, path)
+
+
+#: Agents parsed from pool files, by the SHA-256 of their bytes, most recent last. The member
+#: that selects reads the winner's agent and trains from it next; equal bytes parse to equal
+#: agents, so the second parse (about a millisecond) is skipped. Their arrays are read-only,
+#: so no holder can change an agent another holder uses.
+_parsed: collections.OrderedDict[str, Agent] = collections.OrderedDict()
+PARSED_KEEP = 4
+
+
+def parse_agent(data: bytes, digest: str, source: str) -> Agent:
+    """``Agent.from_bytes(data)`` (``digest``: ``sha256(data)``), parsed once per distinct file."""
+    agent = _parsed.get(digest)
+    if agent is not None:
+        _parsed.move_to_end(digest)
+        return agent
+    agent = Agent.from_bytes(data, source=source)
+    for tree in (agent.params, agent.opt_m, agent.opt_v):
+        for a in tree.values():
+            a.flags.writeable = False
+    agent.norm.mean.flags.writeable = agent.norm.m2.flags.writeable = False
+    _parsed[digest] = agent
+    while len(_parsed) > PARSED_KEEP:
+        _parsed.popitem(last=False)
+    return agent
 
 
 # ---------------------------------------------------------------- deposits
@@ -456,10 +483,11 @@ def read_agent(paths: Paths, i: int, m: int, doc: dict, like: Agent | None = Non
         raise ValueError(f"agent refused ({exc.strerror})") from None
     except OSError as exc:
         raise ValueError(f"agent unreadable ({exc.strerror or exc})") from None
-    if sha256(data) != doc.get("agent_sha256"):
+    digest = sha256(data)
+    if digest != doc.get("agent_sha256"):
         raise ValueError("agent does not match the hash in its metrics")
     try:
-        agent = Agent.from_bytes(data, source=member_name(m) + ".npz")
+        agent = parse_agent(data, digest, member_name(m) + ".npz")
     except AgentFileError as exc:
         raise ValueError(str(exc)) from None
     if like is not None and (agent.meta != like.meta):

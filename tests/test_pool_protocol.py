@@ -558,3 +558,29 @@ def test_a_selection_margin_uses_shifted_episode_scores_and_needs_whole_episode_
     _deposit(paths2, 1, 1, 1.0, parent=2.0)
     sel = _decide(paths2, cfg2, 1, {0, 1})
     assert (sel["winner"], sel["member"]) == ("branch", 0) and "margin" not in sel
+
+
+def test_the_selector_parses_the_winners_agent_once_and_shared_agents_are_read_only(tmp_path, monkeypatch):
+    from rl_pool.agent import Agent
+
+    paths, cfg = make_pool(tmp_path / "p", pool_size=2)
+    _deposit(paths, 1, 0, 1.0, seed=11)
+    _deposit(paths, 1, 1, 2.0, seed=12)
+    like = _like(paths)
+    parsed = []
+    real = Agent.from_bytes.__func__
+    monkeypatch.setattr(Agent, "from_bytes", classmethod(lambda cls, data, source="agent":
+                                                            parsed.append(source) or real(cls, data, source)))
+    sel = pool.select(paths, 1, cfg, like, {0, 1}, "complete", pool.read_selected(paths, 0))
+    sel, _ = pool.publish_selection(paths, sel, by=0)
+    trained_from = pool.load_selected_agent(paths, 1, sel, like=like)
+    assert parsed == ["member-001.npz"]  # select read it; training starts from the same parse
+    assert trained_from.to_bytes() == agent(12).to_bytes()
+    with pytest.raises(ValueError, match="read-only"):
+        next(iter(trained_from.params.values()))[...] = 0.0
+    # other bytes are parsed on their own, whatever the name
+    _deposit(paths, 2, 0, 5.0, seed=13)
+    sel2 = pool.select(paths, 2, cfg, like, {0}, "complete", sel)
+    sel2, _ = pool.publish_selection(paths, sel2, by=0)
+    assert pool.load_selected_agent(paths, 2, sel2).to_bytes() == agent(13).to_bytes()
+    assert parsed == ["member-001.npz", "member-000.npz"]
