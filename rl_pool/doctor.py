@@ -24,6 +24,7 @@ from __future__ import annotations
 import argparse
 import errno
 import json
+import math
 import os
 import shutil
 import socket
@@ -302,9 +303,22 @@ class _Session:
         raise PeerTimeout(f"no peer started `rl-pool doctor {os.path.dirname(os.path.dirname(self.root))} "
                           f"--peer` within {self.timeout:.0f}s")
 
-    def barrier(self, step: str) -> None:
-        self.put(f"{step}-{self.me}", {})
-        self.wait_for(f"{step}-{self.peer}", f"'{step}'")
+    def barrier(self, step: str, payload: dict | None = None) -> dict:
+        """Wait until the peer reached ``step`` too; returns what it passed there."""
+        self.put(f"{step}-{self.me}", payload or {})
+        return self.wait_for(f"{step}-{self.peer}", f"'{step}'")
+
+    def start_together(self, step: str, lead: float = 0.25) -> None:
+        """Meet at ``step``, then sleep until the later of the two start times proposed there.
+
+        A barrier alone lets the runs go up to a poll interval (or, on a busy machine, a
+        scheduling delay) apart, which can be longer than a whole race; clients whose clocks
+        agree (one host, or NTP) start within a millisecond or so. A far-off peer clock is
+        not waited for more than one second."""
+        mine = time.time() + lead
+        theirs = self.barrier(step, {"start": mine}).get("start")
+        at = max(mine, theirs) if isinstance(theirs, (int, float)) and math.isfinite(theirs) else mine
+        time.sleep(min(max(0.0, at - time.time()), 1.0))
 
 
 def _race_one(prim: str, race: str, me: str, k: int) -> bool:
@@ -367,7 +381,7 @@ def peer_race(d: str, rounds: int = 50, session: str = "default", timeout: float
         time.sleep(settle)  # the peer's files visible here before any race starts
         wins = {}
         for prim in PRIMITIVES:
-            s.barrier(f"start-{prim}")
+            s.start_together(f"start-{prim}")
             wins[prim] = [k for k in range(rounds) if _race_one(prim, race, s.me, k)]
         for k in wins["mkdir"]:
             fsutil.atomic_write(os.path.join(race, f"mkdir-{k:04d}", f"by-{s.me}"), b"", sync_dir=False)
