@@ -39,7 +39,9 @@ class PoolConfig:
     eval_episodes: int = opt(3, "evaluation episodes per member per iteration (no updates)")
     eval_mode: str = opt("mean", "evaluation actions: Beta mean or samples", ("mean", "sample"))
     gamma: float = opt(1.0, "discount factor (Swimmer needs ~1: 0.99 traps it near 40)")
-    baseline: str = opt("time", "baseline: leave-one-out time-indexed mean return, or none", ("time", "none"))
+    baseline: str = opt("time", "baseline: leave-one-out time-indexed mean return, a cross-fitted linear "
+                                "function of the state (observation, its square, time), or none",
+                        ("time", "linear", "none"))
     optimizer: str = opt("adam", "step-size rule: Adam, or fixed-length normalised gradient", ("adam", "normalized"))
     policy: str = opt("linear", "policy network: linear in the normalised observation, or an MLP",
                       ("linear", "mlp"))

@@ -42,11 +42,66 @@ def time_baseline(returns: np.ndarray, mask: np.ndarray) -> np.ndarray:
     return b * mask
 
 
-def advantages(rewards: np.ndarray, mask: np.ndarray, gamma: float, baseline: str) -> np.ndarray:
-    """Returns minus baseline, scaled to unit standard deviation over the valid steps."""
+def baseline_features(obs: np.ndarray, mask: np.ndarray) -> np.ndarray:
+    """``[B, T, 2 obs_dim + 4]`` features of each step for :func:`linear_baseline`: the
+    (normalised) observation clipped to [-10, 10], its square, t/100, its square and cube, and 1
+    (the features of Duan et al. 2016's linear feature baseline)."""
+    o = np.clip(np.asarray(obs, dtype=np.float64), -10.0, 10.0)
+    B, T = np.shape(mask)
+    t = np.broadcast_to((np.arange(T, dtype=np.float64) / 100.0)[None, :, None], (B, T, 1))
+    return np.concatenate([o, o * o, t, t * t, t ** 3, np.ones((B, T, 1))], axis=2)
+
+
+def linear_baseline(returns: np.ndarray, mask: np.ndarray, obs: np.ndarray, reg: float = 1e-5) -> np.ndarray:
+    """Cross-fitted linear state baseline ``[B, T]``: a ridge regression of the return-to-go on
+    :func:`baseline_features`, fitted on the odd-numbered episodes for the even ones and on the
+    even ones for the odd ones.
+
+    Where the return depends on the state more than on time (Reacher's target position), this
+    takes out what the time-indexed baseline cannot. Fitting each episode's baseline on the
+    *other* half of the batch keeps it independent of that episode's actions, so the gradient
+    stays unbiased; with one episode there is nothing to fit on and the baseline is 0.
+    """
+    mask = np.asarray(mask, dtype=np.float64)
+    B = mask.shape[0]
+    out = np.zeros_like(mask)
+    if B < 2:
+        return out
+    f = baseline_features(obs, mask)
+    k = f.shape[2]
+    for fold in (0, 1):
+        fit = np.arange(B) % 2 != fold  # the other half
+        valid = mask[fit] > 0
+        x, y = f[fit][valid], np.asarray(returns, dtype=np.float64)[fit][valid]
+        if not len(y):
+            continue
+        xtx, xty = x.T @ x, x.T @ y
+        lam = reg * max(1.0, float(np.trace(xtx)) / k)
+        for _ in range(5):  # as rllab: more regularisation until the solve is finite
+            try:
+                w = np.linalg.solve(xtx + lam * np.eye(k), xty)
+            except np.linalg.LinAlgError:
+                w = None
+            if w is not None and np.all(np.isfinite(w)):
+                break
+            lam *= 10.0
+        else:
+            continue
+        out[~fit] = f[~fit] @ w
+    return out * mask
+
+
+def advantages(rewards: np.ndarray, mask: np.ndarray, gamma: float, baseline: str,
+               obs: np.ndarray | None = None) -> np.ndarray:
+    """Returns minus baseline, scaled to unit standard deviation over the valid steps.
+    ``obs``: the batch's (normalised) observations ``[B, T, obs_dim]``, for ``linear``."""
     g = discounted_returns(rewards, mask, gamma)
     if baseline == "time":
         adv = g - time_baseline(g, mask)
+    elif baseline == "linear":
+        if obs is None:
+            raise ValueError("the linear baseline needs the observations")
+        adv = g - linear_baseline(g, mask, obs)
     elif baseline == "none":
         adv = g
     else:

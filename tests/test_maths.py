@@ -176,6 +176,66 @@ def test_time_baseline_leaves_own_episode_out():
             assert b[i, t] == pytest.approx(want)
 
 
+def _ragged_batch(rng, B=6, T=9, d=3):
+    lengths = rng.integers(3, T + 1, B)
+    mask = (np.arange(T)[None, :] < lengths[:, None]).astype(float)
+    obs = rng.normal(size=(B, T, d)) * 3
+    g = rng.normal(size=(B, T)) * mask
+    return g, mask, obs
+
+
+def test_linear_baseline_matches_a_ridge_fit_written_out_per_step():
+    rng = np.random.default_rng(5)
+    g, mask, obs = _ragged_batch(rng)
+    got = returns.linear_baseline(g, mask, obs, reg=1e-3)
+    B, T = obs.shape[:2]
+    want = np.zeros((B, T))
+    for fold in (0, 1):
+        rows, ys = [], []
+        for b in range(B):
+            if b % 2 == fold:
+                continue
+            for t in range(T):
+                if mask[b, t]:
+                    o = np.clip(obs[b, t], -10, 10)
+                    rows.append([*o, *(o ** 2), t / 100, (t / 100) ** 2, (t / 100) ** 3, 1.0])
+                    ys.append(g[b, t])
+        x, y = np.array(rows), np.array(ys)
+        k = x.shape[1]
+        lam = 1e-3 * max(1.0, np.trace(x.T @ x) / k)
+        # ridge as least squares on the augmented system [x; sqrt(lam) I] w = [y; 0]
+        w = np.linalg.lstsq(np.vstack([x, np.sqrt(lam) * np.eye(k)]), np.concatenate([y, np.zeros(k)]),
+                            rcond=None)[0]
+        for b in range(B):
+            if b % 2 == fold:
+                for t in range(T):
+                    if mask[b, t]:
+                        o = np.clip(obs[b, t], -10, 10)
+                        want[b, t] = np.array([*o, *(o ** 2), t / 100, (t / 100) ** 2, (t / 100) ** 3, 1.0]) @ w
+    np.testing.assert_allclose(got, want, rtol=1e-8, atol=1e-10)
+
+
+def test_linear_baseline_is_fitted_on_the_other_episodes_and_finds_a_linear_return():
+    rng = np.random.default_rng(6)
+    g, mask, obs = _ragged_batch(rng)
+    b0 = returns.linear_baseline(g, mask, obs)
+    g2 = g.copy()
+    g2[2] += 100.0 * mask[2]  # episode 2 (even) is fitted on the odd ones: its baseline does not move
+    b2 = returns.linear_baseline(g2, mask, obs)
+    np.testing.assert_array_equal(b2[::2], b0[::2])
+    assert not np.allclose(b2[1::2], b0[1::2])
+    # a return that is a linear function of the features is predicted (almost) exactly
+    _, mask3, obs3 = _ragged_batch(rng, B=8, T=200)
+    w = rng.normal(size=2 * obs3.shape[2] + 4)
+    exact = (returns.baseline_features(obs3, mask3) @ w) * mask3
+    np.testing.assert_allclose(returns.linear_baseline(exact, mask3, obs3, reg=1e-12), exact, rtol=1e-6, atol=1e-6)
+    assert not returns.linear_baseline(g[:1], mask[:1], obs[:1]).any()  # one episode: nothing to fit on
+    adv = returns.advantages(g, mask, 1.0, "linear", obs)
+    assert adv.shape == g.shape and np.all(adv[mask == 0] == 0)
+    with pytest.raises(ValueError, match="observations"):
+        returns.advantages(g, mask, 1.0, "linear")
+
+
 def test_advantages_unit_std_on_valid_steps():
     rng = np.random.default_rng(4)
     rewards = rng.normal(size=(5, 20))
