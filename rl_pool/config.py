@@ -111,6 +111,8 @@ class PoolConfig:
                 raise UsageError(f"--init-shape: {exc}") from None
         if not (math.isfinite(self.selection_margin) and self.selection_margin >= 0):
             raise UsageError(f"--selection-margin must be a finite number >= 0, got {self.selection_margin}")
+        if self.selection_margin and self.selection != "parent":
+            raise UsageError("--selection-margin needs --selection parent (it is a margin over the parent)")
         if self.revert_after < 0:
             raise UsageError(f"--revert-after must be >= 0, got {self.revert_after}")
         try:

@@ -308,17 +308,19 @@ class _Session:
         self.put(f"{step}-{self.me}", payload or {})
         return self.wait_for(f"{step}-{self.peer}", f"'{step}'")
 
-    def start_together(self, step: str, lead: float = 0.25) -> None:
+    def start_together(self, step: str, lead: float = 1.0) -> None:
         """Meet at ``step``, then sleep until the later of the two start times proposed there.
 
         A barrier alone lets the runs go up to a poll interval (or, on a busy machine, a
         scheduling delay) apart, which can be longer than a whole race; clients whose clocks
         agree (one host, or NTP) start within a millisecond or so. A far-off peer clock is
-        not waited for more than one second."""
+        not waited for more than ``3 lead``. ``lead`` covers the time the later run's proposal
+        takes to show on the other client (up to a second or so on NFS)."""
         mine = time.time() + lead
-        theirs = self.barrier(step, {"start": mine}).get("start")
+        got = self.barrier(step, {"start": mine})
+        theirs = got.get("start") if isinstance(got, dict) else None
         at = max(mine, theirs) if isinstance(theirs, (int, float)) and math.isfinite(theirs) else mine
-        time.sleep(min(max(0.0, at - time.time()), 1.0))
+        time.sleep(min(max(0.0, at - time.time()), 3 * lead))
 
 
 def _race_one(prim: str, race: str, me: str, k: int) -> bool:

@@ -46,7 +46,8 @@ class SignalLatch:
     is only printed ("Exception ignored in ...") and lost, so a process that acted on its first
     signal alone would run on. ``handler`` raises ``make(signum)`` for the first signal and
     ignores later ones (a second Ctrl-C must not cut a clean shutdown short); the process's
-    loops call :meth:`check`, which raises it again while it has not been acted on.
+    loops call :meth:`check`, which raises it again (once the process acts on it, it leaves
+    those loops and nothing calls ``check`` any more).
     """
 
     def __init__(self, make):

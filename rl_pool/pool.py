@@ -379,7 +379,8 @@ def load_selected_agent(paths: Paths, i: int, sel: dict | None = None, like: Age
 #: Agents parsed from pool files, by the SHA-256 of their bytes, most recent last. The member
 #: that selects reads the winner's agent and trains from it next; equal bytes parse to equal
 #: agents, so the second parse (about a millisecond) is skipped. Their arrays are read-only,
-#: so no holder can change an agent another holder uses.
+#: so no holder can change an agent another holder uses (training makes new agents; nothing
+#: assigns into an agent's dictionaries of arrays, and nothing may).
 _parsed: collections.OrderedDict[str, Agent] = collections.OrderedDict()
 PARSED_KEEP = 4
 
@@ -467,8 +468,8 @@ def read_metrics(paths: Paths, i: int, m: int) -> dict:
     if doc.get("iteration") != i or doc.get("member") != m:
         raise ValueError("metrics name another iteration or member")
     ret = doc.get("eval_return")
-    if isinstance(ret, bool) or not isinstance(ret, (int, float)) or not math.isfinite(ret):
-        raise ValueError(f"eval_return is not a finite number ({ret!r})")
+    if not _finite(ret):
+        raise ValueError(f"eval_return is not a finite number ({str(ret)[:40]})")
     return doc
 
 
@@ -531,17 +532,24 @@ def _parent_report(docs: list[dict], parent_sha: str, shifted: bool) -> dict | N
     return None
 
 
-def episode_scores(doc: dict, n: int, shift: float, prefix: str = "") -> list[float] | None:
+#: Larger per-episode returns than this are not believed (no MuJoCo task pays near it); it keeps
+#: the paired differences of a garbled report finite.
+EPISODE_RETURN_MAX = 1e12
+
+
+def episode_scores(doc: dict, n: int, shift: float, max_steps: int, prefix: str = "") -> list[float] | None:
     """The per-episode scores (return, minus ``shift`` per step) of the ``n`` evaluation episodes
     a deposit reports (``prefix`` ``"parent_"``: of the parent), or None if it does not report
-    them whole."""
+    them whole: ``n`` returns within ±:data:`EPISODE_RETURN_MAX` and, with a shift, ``n``
+    lengths of 0 to ``max_steps`` steps."""
     rets, lens = doc.get(prefix + "eval_returns"), doc.get(prefix + "eval_lengths")
-    if not (isinstance(rets, list) and len(rets) == n and all(_finite(r) for r in rets)):
+    if not (isinstance(rets, list) and len(rets) == n
+            and all(_finite(r) and abs(r) <= EPISODE_RETURN_MAX for r in rets)):
         return None
     if not shift:
         return [float(r) for r in rets]
     if not (isinstance(lens, list) and len(lens) == n
-            and all(isinstance(k, int) and not isinstance(k, bool) and k >= 0 for k in lens)):
+            and all(isinstance(k, int) and not isinstance(k, bool) and 0 <= k <= max_steps for k in lens)):
         return None
     return [float(r) - shift * k for r, k in zip(rets, lens, strict=True)]
 
@@ -556,7 +564,13 @@ def paired_margin(branch: list[float], parent: list[float]) -> tuple[float, floa
 
 
 def _finite(x) -> bool:
-    return isinstance(x, (int, float)) and not isinstance(x, bool) and math.isfinite(x)
+    """A JSON number that is a finite float (an integer too large for a float is not)."""
+    if isinstance(x, bool) or not isinstance(x, (int, float)):
+        return False
+    try:
+        return math.isfinite(float(x))
+    except OverflowError:
+        return False
 
 
 def select(paths: Paths, i: int, cfg: PoolConfig, like: Agent, members: set[int], reason: str,
@@ -607,10 +621,11 @@ def select(paths: Paths, i: int, cfg: PoolConfig, like: Agent, members: set[int]
     # result is still a pure function of the files.
     while True:
         report = _parent_report(docs, previous["agent_sha256"], shifted) if cfg.selection == "parent" else None
-        parent_eps = (episode_scores(report, cfg.eval_episodes, cfg.reward_shift, "parent_")
-                      if report is not None and cfg.selection_margin else None)
+        parent_eps = (episode_scores(report, cfg.eval_episodes, cfg.reward_shift, cfg.max_episode_steps,
+                                     "parent_") if report is not None and cfg.selection_margin else None)
         for c in considered:
-            eps = parent_eps and episode_scores(c["doc"], cfg.eval_episodes, cfg.reward_shift)
+            eps = parent_eps and episode_scores(c["doc"], cfg.eval_episodes, cfg.reward_shift,
+                                                cfg.max_episode_steps)
             c["diff"], c["se"] = paired_margin(eps, parent_eps) if eps else (None, None)
         eligible = [c for c in considered if parent_eps is None
                     or (c["diff"] is not None and c["diff"] >= cfg.selection_margin * c["se"])]

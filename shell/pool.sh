@@ -37,6 +37,10 @@ else
         fi
     done
 fi
+if ! [[ "$STOP_GRACE" =~ ^[0-9]+$ ]]; then
+    echo "pool.sh: STOP_GRACE must be a whole number of seconds, got '$STOP_GRACE'" >&2
+    exit 2
+fi
 if [ "${#LRS[@]}" -ne "$N" ]; then
     echo "pool.sh: ${#LRS[@]} learning rates for N=$N members" >&2
     exit 2
@@ -90,7 +94,9 @@ while [ "$left" -gt 0 ]; do
     if [ "$left" -gt 0 ] && [ -n "$kill_at" ] && [ "$SECONDS" -ge "$kill_at" ]; then
         # Every pool file is written whole or not at all, so KILL loses nothing on disk.
         echo "pool.sh: $left member(s) still running ${STOP_GRACE}s after TERM; sending KILL" >&2
-        kill -KILL "${pids[@]}" 2>/dev/null
+        for ((m = 0; m < N; m++)); do
+            [ -z "${rcs[$m]:-}" ] && kill -KILL "${pids[$m]}" 2>/dev/null  # not yet reaped: still ours
+        done
         kill_at=$((SECONDS + 3600))
     fi
     [ "$left" -gt 0 ] && sleep 0.2

@@ -1,5 +1,6 @@
 """The shared-directory protocol on tmp_path: deposits, selection, hostile files, init, GC."""
 
+import collections
 import io
 import json
 import os
@@ -539,25 +540,56 @@ def test_with_a_selection_margin_a_branch_must_beat_the_parent_by_k_paired_stand
 
 def test_a_selection_margin_uses_shifted_episode_scores_and_needs_whole_episode_reports(tmp_path):
     paths, cfg = make_pool(tmp_path / "s", pool_size=2, selection_margin=1, reward_shift=1.0)
-    parent, plens = [100.0, 100.0, 100.0], [50, 50, 50]  # scores 50 each
-    # member 0 lives longer (returns +20 per episode) but its shifted scores are 10 lower: no
-    _margin_deposit(paths, 1, 0, [120.0, 121.0, 120.0], parent, seed=1, lengths=[80, 80, 80], parent_lengths=plens)
-    # member 1 reports returns without lengths under a shift: it cannot clear the margin
-    _margin_deposit(paths, 1, 1, [130.0, 131.0, 130.0], parent, seed=2, lengths=[50, 50, 50], parent_lengths=plens)
+    parent, plens = [100.0, 100.0, 100.0], [30, 30, 30]  # scores 70 each
+    # member 0 lives longer (returns +20 per episode) but its shifted scores are ~10 lower: no
+    _margin_deposit(paths, 1, 0, [120.0, 121.0, 120.0], parent, seed=1, lengths=[60, 60, 60], parent_lengths=plens)
+    # member 1 moves better in the same time: +30 per episode
+    _margin_deposit(paths, 1, 1, [130.0, 131.0, 130.0], parent, seed=2, lengths=[30, 30, 30], parent_lengths=plens)
     doc = pool.read_metrics(paths, 1, 1)
-    assert pool.episode_scores(doc, 3, 1.0) == [80.0, 81.0, 80.0]
-    assert pool.episode_scores(doc | {"eval_lengths": None}, 3, 1.0) is None
-    assert pool.episode_scores(doc | {"eval_returns": [1.0, float("nan"), 2.0]}, 3, 0.0) is None
-    assert pool.episode_scores(doc, 4, 0.0) is None  # not the pool's number of episodes
+    assert pool.episode_scores(doc, 3, 1.0, 60) == [100.0, 101.0, 100.0]
+    assert pool.episode_scores(doc, 3, 0.0, 60) == [130.0, 131.0, 130.0]
+    assert pool.episode_scores(doc, 3, 1.0, 60, "parent_") == [70.0, 70.0, 70.0]
+    assert pool.episode_scores(doc | {"eval_lengths": None}, 3, 1.0, 60) is None  # lengths needed with a shift
+    assert pool.episode_scores(doc | {"eval_lengths": [30, 30, 61]}, 3, 1.0, 60) is None  # longer than an episode
+    assert pool.episode_scores(doc | {"eval_returns": [1.0, float("nan"), 2.0]}, 3, 0.0, 60) is None
+    assert pool.episode_scores(doc, 4, 0.0, 60) is None  # not the pool's number of episodes
     sel = _decide(paths, cfg, 1, {0, 1})
     assert (sel["winner"], sel["member"]) == ("branch", 1)
-    assert [c["diff"] for c in sel["considered"]] == pytest.approx([-10.0 + 1 / 3, 30.0 + 1 / 3])
+    assert [c["diff"] for c in sel["considered"]] == pytest.approx([-29 / 3, 30 + 1 / 3])
     # without the parent's episodes (deposits from before the margin): plain means decide
     paths2, cfg2 = make_pool(tmp_path / "old", pool_size=2, selection_margin=5)
     _deposit(paths2, 1, 0, 3.0, parent=2.0)
     _deposit(paths2, 1, 1, 1.0, parent=2.0)
     sel = _decide(paths2, cfg2, 1, {0, 1})
     assert (sel["winner"], sel["member"]) == ("branch", 0) and "margin" not in sel
+
+
+@pytest.mark.parametrize("garbled", [
+    {"eval_returns": [10 ** 400, 1, 2]},                     # an integer no float can hold
+    {"eval_returns": [1e200, -1e200, 0.0]},                  # finite, but squares overflow
+    {"eval_returns": [1.7e308, -1.7e308, 1.0]},
+    {"eval_returns": ["1", 2, 3]}, {"eval_returns": {"a": 1}}, {"eval_returns": [True, 1, 2]},
+    {"eval_lengths": [10 ** 400, 1, 2]}, {"eval_lengths": [-1, 1, 2]}, {"eval_lengths": [1.5, 1, 2]},
+    {"parent_eval_returns": [1e308, 1e308, 1e308]}, {"parent_eval_lengths": "x"},
+])
+def test_a_garbled_episode_report_cannot_break_a_margin_selection(tmp_path, garbled):
+    """Every member computes the same selection: a report that makes one raise would stop the pool."""
+    paths, cfg = make_pool(tmp_path / "g", pool_size=2, selection_margin=1, reward_shift=0.5)
+    parent = [10.0, 20.0, 30.0]
+    _margin_deposit(paths, 1, 1, [11.0, 21.0, 31.0], parent, seed=2, lengths=[5, 5, 5], parent_lengths=[5, 5, 5])
+    prev = pool.read_selected(paths, 0)
+    doc = {"eval_return": 1000.0, "eval_score": 1000.0, "eval_returns": [1000.0] * 3, "eval_lengths": [5] * 3,
+           "parent_eval_return": 20.0, "parent_eval_score": 17.5, "parent_eval_returns": parent,
+           "parent_eval_lengths": [5] * 3, "parent_sha256": prev["agent_sha256"]} | garbled
+    pool.deposit(paths, 1, 0, agent(1), doc)  # member 0 reports the parent first: its report counts
+    sel = _decide(paths, cfg, 1, {0, 1})
+    assert sel["winner"] in ("branch", "parent")
+    if "parent_eval_returns" in garbled or "parent_eval_lengths" in garbled:
+        assert "margin" not in sel  # no usable parent episodes: plain means decide
+    else:
+        assert (sel["winner"], sel["member"]) == ("branch", 1)  # member 0 cannot clear the margin
+        assert sel["considered"][0]["diff"] is None
+    json.loads(open(paths.selected(1)).read())  # written, strict JSON
 
 
 def test_the_selector_parses_the_winners_agent_once_and_shared_agents_are_read_only(tmp_path, monkeypatch):
@@ -568,6 +600,7 @@ def test_the_selector_parses_the_winners_agent_once_and_shared_agents_are_read_o
     _deposit(paths, 1, 1, 2.0, seed=12)
     like = _like(paths)
     parsed = []
+    monkeypatch.setattr(pool, "_parsed", collections.OrderedDict())  # whatever earlier tests parsed
     real = Agent.from_bytes.__func__
     monkeypatch.setattr(Agent, "from_bytes", classmethod(lambda cls, data, source="agent":
                                                             parsed.append(source) or real(cls, data, source)))
@@ -584,3 +617,13 @@ def test_the_selector_parses_the_winners_agent_once_and_shared_agents_are_read_o
     sel2, _ = pool.publish_selection(paths, sel2, by=0)
     assert pool.load_selected_agent(paths, 2, sel2).to_bytes() == agent(13).to_bytes()
     assert parsed == ["member-001.npz", "member-000.npz"]
+
+
+def test_a_selection_margin_needs_the_parent_in_the_selection(tmp_path):
+    from rl_pool.config import PoolConfig
+
+    with pytest.raises(UsageError, match="needs --selection parent"):
+        make_pool(tmp_path / "b", selection="branches", selection_margin=1)
+    with pytest.raises(UsageError, match=">= 0"):
+        PoolConfig(selection_margin=-1).validate()
+    assert PoolConfig(selection_margin=2).validate().selection_margin == 2
