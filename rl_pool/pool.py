@@ -595,8 +595,9 @@ def select(paths: Paths, i: int, cfg: PoolConfig, like: Agent, members: set[int]
     differences (``paired_margin``), so evaluation noise alone rarely replaces the parent with
     a worse agent; the best-scoring branch that clears it wins, else the parent. Each
     considered branch then records ``diff`` and ``se``; a branch that does not report its
-    episodes whole cannot clear it. Without the parent's episodes (no deposit reports them)
-    the plain comparison of means applies.
+    episodes whole cannot clear it. The parent's score and episodes come from the lowest
+    report that has them whole; without one (deposits from before the margin) the plain
+    comparison of means applies.
     """
     shifted = bool(cfg.reward_shift)
     considered, skipped, docs = [], [], []
@@ -619,10 +620,17 @@ def select(paths: Paths, i: int, cfg: PoolConfig, like: Agent, members: set[int]
     # grows with N small JSON files, not N agents. One that fails its check is skipped with the
     # reason (its report of the parent too) and the selection is made again without it, so the
     # result is still a pure function of the files.
+    def parent_episodes(doc):
+        return episode_scores(doc, cfg.eval_episodes, cfg.reward_shift, cfg.max_episode_steps, "parent_")
+
     while True:
         report = _parent_report(docs, previous["agent_sha256"], shifted) if cfg.selection == "parent" else None
-        parent_eps = (episode_scores(report, cfg.eval_episodes, cfg.reward_shift, cfg.max_episode_steps,
-                                     "parent_") if report is not None and cfg.selection_margin else None)
+        parent_eps = None
+        if report is not None and cfg.selection_margin:
+            # the lowest report of the parent with its episodes whole (all honest ones agree)
+            report = _parent_report([d for d in docs if parent_episodes(d)], previous["agent_sha256"],
+                                    shifted) or report
+            parent_eps = parent_episodes(report)
         for c in considered:
             eps = parent_eps and episode_scores(c["doc"], cfg.eval_episodes, cfg.reward_shift,
                                                 cfg.max_episode_steps)
