@@ -510,20 +510,13 @@ def choose(candidates: list[tuple[int, float]]) -> tuple[int, float]:
     return min(candidates, key=lambda c: (-c[1], c[0]))
 
 
-def parent_score(docs: list[dict], parent_sha: str, shifted: bool = False) -> tuple[float, float] | None:
-    """``(env return, score)`` of the parent on this iteration's evaluation episodes, as the valid
-    deposits report it (``score`` is the shifted return when ``shifted``, else the return).
+def parent_report(docs: list[dict], parent_sha: str, shifted: bool = False) -> dict | None:
+    """The deposit whose report of the parent's score counts: the lowest member's that names the
+    right parent and gives a finite return (and, when ``shifted``, a finite shifted score).
 
     Every member re-scores the agent it started from on the iteration's common
-    evaluation seeds, so all honest reports agree; the lowest member's report
-    that names the right parent counts.
+    evaluation seeds, so all honest reports agree.
     """
-    doc = _parent_report(docs, parent_sha, shifted)
-    return None if doc is None else (float(doc["parent_eval_return"]),
-                                     float(doc["parent_eval_score" if shifted else "parent_eval_return"]))
-
-
-def _parent_report(docs: list[dict], parent_sha: str, shifted: bool) -> dict | None:
     for doc in docs:
         ret = doc.get("parent_eval_return")
         score = doc.get("parent_eval_score") if shifted else ret
@@ -623,13 +616,13 @@ def select(paths: Paths, i: int, cfg: PoolConfig, like: Agent, members: set[int]
     def parent_episodes(doc):
         return episode_scores(doc, cfg.eval_episodes, cfg.reward_shift, cfg.max_episode_steps, "parent_")
 
+    sha = previous["agent_sha256"]
     while True:
-        report = _parent_report(docs, previous["agent_sha256"], shifted) if cfg.selection == "parent" else None
+        report = parent_report(docs, sha, shifted) if cfg.selection == "parent" else None
         parent_eps = None
         if report is not None and cfg.selection_margin:
             # the lowest report of the parent with its episodes whole (all honest ones agree)
-            report = _parent_report([d for d in docs if parent_episodes(d)], previous["agent_sha256"],
-                                    shifted) or report
+            report = parent_report([d for d in docs if parent_episodes(d)], sha, shifted) or report
             parent_eps = parent_episodes(report)
         for c in considered:
             eps = parent_eps and episode_scores(c["doc"], cfg.eval_episodes, cfg.reward_shift,
@@ -654,16 +647,16 @@ def select(paths: Paths, i: int, cfg: PoolConfig, like: Agent, members: set[int]
            "skipped": skipped, "quorum_reason": reason,
            "parent": {"iteration": previous["iteration"], "member": previous.get("member"),
                       "agent_sha256": previous["agent_sha256"]}}
-    parent = parent_score([report], previous["agent_sha256"], shifted) if report is not None else None
+    parent = None if report is None else (
+        float(report["parent_eval_return"]), float(report["parent_eval_score" if shifted else "parent_eval_return"]))
     out["parent"] |= {"eval_return": parent and parent[0], "score": parent and parent[1]}
     if parent_eps is not None:
         out["margin"] = cfg.selection_margin
     keep_parent = {"member": None, "agent": previous["agent"], "agent_sha256": previous["agent_sha256"],
                    "eval_return": parent and parent[0], "score": parent and parent[1]}
     if considered:
-        if eligible:
-            top, _ = choose([(c["member"], c["score"]) for c in eligible])
-            best = next(c for c in eligible if c["member"] == top)
+        if eligible:  # the loop stopped at the winner, its agent checked
+            best = c
         else:  # with a margin, no branch cleared it: the parent stays
             top, _ = choose([(c["member"], c["score"]) for c in considered])
             best = next(c for c in considered if c["member"] == top)

@@ -51,6 +51,7 @@ pids=()
 watcher=""
 stopped=0
 kill_at=""
+killed=0
 stop_members() {
     # SIGTERM, not SIGINT: bash starts background jobs with SIGINT ignored, so a member
     # that has not yet installed its handler would miss an INT; it stops cleanly on TERM.
@@ -91,13 +92,13 @@ while [ "$left" -gt 0 ]; do
             stop_members
         fi
     done
-    if [ "$left" -gt 0 ] && [ -n "$kill_at" ] && [ "$SECONDS" -ge "$kill_at" ]; then
+    if [ "$left" -gt 0 ] && [ "$killed" -eq 0 ] && [ -n "$kill_at" ] && [ "$SECONDS" -ge "$kill_at" ]; then
         # Every pool file is written whole or not at all, so KILL loses nothing on disk.
         echo "pool.sh: $left member(s) still running ${STOP_GRACE}s after TERM; sending KILL" >&2
         for ((m = 0; m < N; m++)); do
             [ -z "${rcs[$m]:-}" ] && kill -KILL "${pids[$m]}" 2>/dev/null  # not yet reaped: still ours
         done
-        kill_at=$((SECONDS + 3600))
+        killed=1
     fi
     [ "$left" -gt 0 ] && sleep 0.2
 done
