@@ -904,7 +904,10 @@ class BarrierResult:
 #: Listings of a waiting member's iteration directory: right after its deposit, then after gaps
 #: doubling from LIST_FIRST to LIST_MAX seconds (docs/cluster.md: "Listings"). A timed listing
 #: that shows every deposit waits LIST_GRACE more for the last depositor's decision before
-#: selecting itself (a second selection is harmless but reads N files).
+#: selecting itself, times one plus the member's index (staggered: when the last depositor is only
+#: slow, as it is with many members to a core, member 0 selects for it and the others, seeing the
+#: decision at their next poll, do not; a second selection is harmless but reads N files and
+#: delays the first, so without the stagger every waiting member selected at once).
 LIST_FIRST, LIST_MAX, LIST_GRACE = 0.05, 1.0, 0.05
 
 
@@ -919,7 +922,8 @@ def barrier(paths: Paths, i: int, cfg: PoolConfig, me: int, like: Agent, quorum:
     (:data:`LIST_FIRST` doubling to :data:`LIST_MAX` seconds). The member whose
     listing shows all ``pool_size`` deposits selects: normally the last
     depositor, alone; the timer covers a listing that lagged behind another
-    host's deposit. With at least ``quorum`` deposits listed, a member also
+    host's deposit and a last depositor that stopped before deciding (then,
+    after a grace staggered by member index, one waiting member decides for it). With at least ``quorum`` deposits listed, a member also
     goes on when every missing member is stale or ``timeout`` seconds have
     passed (checked at listing times). Without a quorum after ``timeout`` it
     raises :class:`BarrierTimeout`. Two members selecting at once is harmless:
@@ -945,7 +949,7 @@ def barrier(paths: Paths, i: int, cfg: PoolConfig, me: int, like: Agent, quorum:
                     if not listed or all_seen:  # right after our deposit, or still undecided after the grace
                         reason = "complete"
                         break
-                    all_seen, next_list = True, now + LIST_GRACE
+                    all_seen, next_list = True, now + LIST_GRACE * (1 + me)
                     continue
                 listed = True
                 missing = sorted(set(range(cfg.pool_size)) - have)

@@ -298,6 +298,33 @@ def test_a_waiting_member_selects_when_the_last_depositor_does_not(tmp_path):
     assert 0.35 <= waited < 0.75, waited
 
 
+def test_waiting_members_stagger_their_grace_so_one_selects_for_a_silent_last_depositor(tmp_path, monkeypatch):
+    """Two members wait; the third deposit appears but its writer never decides. Member 0 decides
+    after one grace, member 1 (two graces) finds that decision at its next poll: one selection, not
+    one per waiting member (each reads N files)."""
+    paths, cfg = make_pool(tmp_path / "p", pool_size=3)
+    _deposit(paths, 1, 0, 1.0)
+    _deposit(paths, 1, 1, 3.0)
+    calls = []
+    real_select = pool.select
+    monkeypatch.setattr(pool, "select", lambda *a, **kw: calls.append(a[1]) or real_select(*a, **kw))
+    threading.Timer(0.3, lambda: _deposit(paths, 1, 2, 2.0)).start()
+    results = {}
+
+    def wait(m):
+        results[m] = pool.barrier(paths, 1, cfg, m, _like(paths), quorum=3, timeout=30,
+                                  liveness=pool.Liveness(paths, 60), poll_max=0.01)
+
+    threads = [threading.Thread(target=wait, args=(m,)) for m in (0, 1)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join(30)
+    assert len(calls) == 1, calls
+    assert results[0].created and not results[1].created
+    assert results[0].selection == results[1].selection and results[1].selection["member"] == 1
+
+
 def test_a_held_directory_is_walked_to_once_and_reads_below_it_stay_bounded(tmp_path):
     """Under a hold, each read or listing opens the held directory afresh ("." relative to it: one
     open, which on NFS revalidates the directory) instead of walking pool/iterations/000001 again."""
