@@ -376,8 +376,10 @@ def protocol(args) -> None:
     base = None if args.dir else tempfile.mkdtemp(prefix="rl-pool-bench-")
     dirs = args.dir or [base]
     extra = ["--env", args.env, "--max-episode-steps", "10", "--train-episodes", "1", "--batch-episodes", "1",
-             "--eval-episodes", "1", "--heartbeat-timeout", "600", "--barrier-timeout", "600"]
-    print(f"env {args.env}, 10-step episodes, 1 training + 1 evaluation episode per member and iteration, "
+             "--eval-episodes", "1", "--heartbeat-timeout", "600", "--barrier-timeout", "600",
+             "--selection", args.selection]
+    parent = " + the parent's re-score" if args.selection == "parent" else ""
+    print(f"env {args.env}, 10-step episodes, 1 training + 1 evaluation episode{parent} per member and iteration, "
           f"{args.iterations} iterations (first {args.warmup} not counted); pool on {', '.join(dirs)}")
     print("per member and iteration (mean over members and iterations; ms: median):")
     print(f"{'N':>4} {'ms/iter':>8} {'cpu ms':>6} {'floor':>6} {'reads':>6} {'writes':>6} {'missing':>7} {'dir opens':>9} "
@@ -484,6 +486,9 @@ def main(argv=None) -> None:
     pr.add_argument("--dir", action="append", default=None,
                     help="where the pool lives (default: a temp dir); repeat for mounts of one shared "
                          "directory (members alternate between them)")
+    pr.add_argument("--selection", default="parent", choices=("parent", "branches"),
+                    help="the pool's --selection: parent (the default) also re-scores the parent each "
+                         "iteration, one more evaluation episode of work per member")
     pr.add_argument("--json", action="store_true", help="also print the rows as one JSON list")
     pr.set_defaults(func=protocol)
     m = sub.add_parser("_member")  # internal: one member under the filesystem-call counter
