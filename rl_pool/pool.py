@@ -904,11 +904,11 @@ class BarrierResult:
 #: Listings of a waiting member's iteration directory: right after its deposit, then after gaps
 #: doubling from LIST_FIRST to LIST_MAX seconds (docs/cluster.md: "Listings"). A timed listing
 #: that shows every deposit waits LIST_GRACE more for the last depositor's decision before
-#: selecting itself, times one plus the member's index (staggered: when the last depositor is only
-#: slow, as it is with many members to a core, member 0 selects for it and the others, seeing the
-#: decision at their next poll, do not; a second selection is harmless but reads N files and
-#: delays the first, so without the stagger every waiting member selected at once).
-LIST_FIRST, LIST_MAX, LIST_GRACE = 0.05, 1.0, 0.05
+#: selecting itself, times one plus the member's index (at most GRACE_STEPS times): staggered, so
+#: that when selecting takes longer than the grace (N metrics files over a network filesystem),
+#: member 0 selects for a silent last depositor and the others find its decision at their next
+#: poll, instead of every waiting member selecting at once (harmless, but each reads N files).
+LIST_FIRST, LIST_MAX, LIST_GRACE, GRACE_STEPS = 0.05, 1.0, 0.05, 100
 
 
 def barrier(paths: Paths, i: int, cfg: PoolConfig, me: int, like: Agent, quorum: int,
@@ -923,7 +923,8 @@ def barrier(paths: Paths, i: int, cfg: PoolConfig, me: int, like: Agent, quorum:
     listing shows all ``pool_size`` deposits selects: normally the last
     depositor, alone; the timer covers a listing that lagged behind another
     host's deposit and a last depositor that stopped before deciding (then,
-    after a grace staggered by member index, one waiting member decides for it). With at least ``quorum`` deposits listed, a member also
+    after a grace staggered by member index, one waiting member decides for
+    it). With at least ``quorum`` deposits listed, a member also
     goes on when every missing member is stale or ``timeout`` seconds have
     passed (checked at listing times). Without a quorum after ``timeout`` it
     raises :class:`BarrierTimeout`. Two members selecting at once is harmless:
@@ -949,7 +950,7 @@ def barrier(paths: Paths, i: int, cfg: PoolConfig, me: int, like: Agent, quorum:
                     if not listed or all_seen:  # right after our deposit, or still undecided after the grace
                         reason = "complete"
                         break
-                    all_seen, next_list = True, now + LIST_GRACE * (1 + me)
+                    all_seen, next_list = True, now + LIST_GRACE * min(1 + me, GRACE_STEPS)
                     continue
                 listed = True
                 missing = sorted(set(range(cfg.pool_size)) - have)
