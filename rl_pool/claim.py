@@ -324,6 +324,17 @@ def _await(path: str, k: int, root, cap: int, accept, wait: float) -> tuple:
         delay = min(delay * 2, 0.1)
 
 
+def publish_missing(path, root=None, cap: int = MAX_BYTES, accept=None) -> bool:
+    """Write the plain copy ``path`` of a decision that lacks it (its winner stopped, or found the
+    disk full, between deciding and publishing); True if a decision was there to copy."""
+    path = os.fspath(path)
+    data = read_once(path, root=root, cap=cap, accept=accept)
+    if data is None:
+        return False
+    _publish(path, data, missing_only=True, root=root)
+    return True
+
+
 def _publish(path: str, payload: bytes, missing_only: bool = False, root=None) -> None:
     """Write the plain copy ``path`` of a decided payload (any number of writers: same bytes).
 

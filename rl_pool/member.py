@@ -118,6 +118,7 @@ def run(pool_dir: str, requested: dict, mc: MemberConfig, quiet: bool = False) -
     # A killed writer's temp files sit where the pool was when it died: near the last selection.
     pool.remove_dead_temps(paths.root, paths.members,
                            *(paths.iteration(k) for k in range(max(0, last - 2), last + 2)))
+    pool.publish_missing_selections(paths, range(max(1, last - 2), last + 1))
     if last >= mc.iterations:
         log.info("pool already at iteration %d (target %d): nothing to do", last, mc.iterations)
         return EXIT_OK

@@ -769,6 +769,18 @@ def collect_garbage(paths: Paths, i: int) -> int:
     return removed + remove_dead_temps(paths.iteration(i))
 
 
+def publish_missing_selections(paths: Paths, iterations) -> None:
+    """Write the plain ``selected.json`` of decided ``iterations`` that lack it: its writer stopped,
+    or found the disk full, between deciding and publishing, and members (which decide from the
+    decision, not the copy) would never write it again; people and tools read the copy."""
+    for k in iterations:
+        try:
+            claim.publish_missing(paths.selected(k), root=paths.root, cap=fsutil.JSON_MAX_BYTES,
+                                  accept=paths.signed)
+        except (OSError, ValueError) as exc:
+            log.warning("cannot check the decision of iteration %d: %s", k, _why(exc))
+
+
 def remove_dead_temps(*dirs: str) -> int:
     """Temp files in ``dirs`` whose writer (named in the temp file's name) is a dead process on this host.
 

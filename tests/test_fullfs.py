@@ -105,6 +105,20 @@ def test_full_disk_stops_a_member_in_one_line_and_a_restart_resumes_exactly(tmpf
     assert history(d) == want
 
 
+def test_a_restart_writes_the_selected_json_copy_its_winner_could_not(uninterrupted, tmp_path):
+    """The disk filled between a decision and its plain copy (seen once in CI with the disk filled
+    while waiting): members decide from the decision, so the restart must write the copy, or tools
+    reading iterations/*/selected.json see a gap. Here the copy is removed by hand at that point."""
+    _, want = uninterrupted
+    d = tmp_path / "pool"
+    args = list(ARGS)
+    args[args.index("--iterations") + 1] = ITERS - 2
+    rl_pool("train", "--pool-dir", d, *args, check=0)
+    os.unlink(d / f"iterations/{ITERS - 2:06d}/selected.json")
+    rl_pool("train", "--pool-dir", d, *ARGS, check=0)
+    assert history(d) == want
+
+
 def test_a_read_only_pool_can_be_watched_and_a_member_stops_in_one_line(tmpfs, uninterrupted, tmp_path,
                                                                         capsys):
     from rl_pool.cli import main

@@ -656,3 +656,25 @@ def test_a_selection_margin_needs_the_parent_in_the_selection(tmp_path):
     with pytest.raises(UsageError, match=">= 0"):
         PoolConfig(selection_margin=-1).validate()
     assert PoolConfig(selection_margin=2).validate().selection_margin == 2
+
+
+def test_a_restart_publishes_the_plain_copy_a_decision_lacks(tmp_path):
+    """A winner stopped (or found the disk full) between deciding and publishing ``selected.json``:
+    members decide from the decision and would never write the copy; a restart writes it with the
+    decided bytes, leaves an existing copy alone and writes nothing for an undecided iteration."""
+    paths, cfg = make_pool(tmp_path / "p", pool_size=1)
+    _deposit(paths, 1, 0, 1.0)
+    doc = _decide(paths, cfg, 1, [0])
+    decided = paths.decision(paths.selected(1))
+    os.unlink(paths.selected(1))
+    pool.make_iteration_dir(paths, 2)
+    pool.publish_missing_selections(paths, [1, 2])
+    with open(paths.selected(1), "rb") as fh:
+        assert fh.read() == decided
+    assert json.loads(decided)["agent_sha256"] == doc["agent_sha256"]
+    assert not os.path.lexists(paths.selected(2))
+    with open(paths.selected(1), "w") as fh:
+        fh.write("left alone")
+    pool.publish_missing_selections(paths, [1])
+    with open(paths.selected(1)) as fh:
+        assert fh.read() == "left alone"
