@@ -69,8 +69,9 @@ rename (renaming onto an empty directory is allowed).
 
 After the decision, the plain file ``NAME`` is published: the winner writes
 it (temp file, fsync, ``os.replace``), and anyone who finds it missing writes
-it too (:func:`publish_missing`: a member does so for its last iterations when it starts). Every write of ``NAME`` carries the decided bytes, so replacing it is
-harmless; people and tools (``status``, ``jq``, the SLURM script) read
+it too (:func:`publish_missing`: a member does so for its last iterations
+when it starts). Every write of ``NAME`` carries the decided bytes, so
+replacing it is harmless; people and tools (``status``, ``jq``, the SLURM script) read
 ``NAME``, while members decide from ``.NAME.once``.
 
 Costs: a decision is one ``mkdir``, one file written and fsynced, one
