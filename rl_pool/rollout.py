@@ -65,17 +65,26 @@ def run_episodes(envs, params: dict, spec: policy.PolicySpec, norm, low, high, s
     all_active = True
     step_fns = [env.step for env in envs[:n]]
 
+    # np.minimum/np.maximum rather than np.clip (the same numbers): with one env and a small
+    # policy each step is a dozen tiny NumPy calls, and np.clip's Python wrapper costs as much
+    # as the arithmetic (docs/cluster.md: where a member's CPU goes).
     for t in range(max_steps):
         o_act = cur if all_active else cur[active]
-        x = np.clip((o_act - mean) * inv_std, -clip, clip)
+        x = (o_act - mean) * inv_std
+        np.minimum(np.maximum(x, -clip, out=x), clip, out=x)
         ab = policy.shapes(policy.preactivations(params, x, spec), spec.link)
         a, b = ab[:, :act_dim], ab[:, act_dim:]
-        u = a / (a + b) if deterministic else policy.clip_unit(rng.beta(a, b))
+        if deterministic:
+            u = a / (a + b)
+        else:
+            u = rng.beta(a, b)
+            np.minimum(np.maximum(u, policy.EPS, out=u), 1.0 - policy.EPS, out=u)  # policy.clip_unit
         actions = low + u * span
+        at = slice(None) if all_active else active
         if record:
-            obs_buf[active, t] = o_act
-            u_buf[active, t] = u
-            mask[active, t] = 1.0
+            obs_buf[at, t] = o_act
+            u_buf[at, t] = u
+            mask[at, t] = 1.0
         # The envs are stepped in a plain loop (MuJoCo's work); everything per step that NumPy
         # can do for the whole batch is done once, after it.
         obs_t, rew_t, ended = [], [], []
@@ -85,12 +94,12 @@ def run_episodes(envs, params: dict, spec: policy.PolicySpec, norm, low, high, s
             rew_t.append(r)
             if terminated:
                 ended.append(k)
-        cur[active] = obs_t
+        cur[at] = obs_t
         rew = np.asarray(rew_t, dtype=np.float64)
-        returns[active] += rew
+        returns[at] += rew
         if record:
-            rew_buf[active, t] = rew
-        lengths[active] += 1
+            rew_buf[at, t] = rew
+        lengths[at] += 1
         if ended:
             active = np.delete(active, ended)
             live = active.tolist()

@@ -173,6 +173,28 @@ def test_member_left_behind_rejoins_where_the_pool_is(tmp_path):
     assert not (d / "iterations/000004/member-001.json").exists()
 
 
+def test_in_a_larger_pool_three_members_in_turn_re_score_the_parent(tmp_path):
+    """N = 4: each iteration exactly the members ``scores_parent`` names report the parent's score,
+    their reports agree (same agent, same episodes), and the selection compares with it."""
+    d = tmp_path / "four"
+    n, iters = 4, 4
+    procs = [spawn("train", "--pool-dir", d, "--pool-size", n, "--member", m, "--learning-rate", 0.05,
+                   "--iterations", iters, *SHORT, "--quiet") for m in range(n)]
+    for p in procs:
+        _, err = p.communicate(timeout=240)
+        assert p.returncode == 0, err
+    for i in range(1, iters + 1):
+        docs = [json.loads((d / f"iterations/{i:06d}/member-{m:03d}.json").read_text()) for m in range(n)]
+        scorers = [m for m, doc in enumerate(docs) if "parent_eval_return" in doc]
+        assert scorers == [m for m in range(n) if pool.scores_parent(i, m, n)] and len(scorers) == 3
+        assert len({docs[m]["parent_eval_return"] for m in scorers}) == 1
+        assert all(docs[m]["parent_eval_steps"] > 0 for m in scorers)
+        sel = json.loads((d / f"iterations/{i:06d}/selected.json").read_text())
+        assert sel["parent"]["eval_return"] == docs[scorers[0]]["parent_eval_return"]
+        assert sel["winner"] == ("parent" if sel["parent"]["eval_return"] > max(doc["eval_return"] for doc in docs)
+                                 else "branch")
+
+
 def test_hostile_deposits_in_a_live_pool_are_skipped_and_never_run(tmp_path):
     import io
 

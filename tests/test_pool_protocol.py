@@ -401,6 +401,32 @@ def test_parent_score_needs_the_right_parent_and_the_parent_rule(tmp_path):
     assert (sel2["winner"], sel2["member"]) == ("branch", 0)
 
 
+def test_three_members_in_turn_re_score_the_parent():
+    for n in range(1, 9):
+        counts = collections.Counter()
+        for i in range(1, 3 * n + 1):
+            scorers = [m for m in range(n) if pool.scores_parent(i, m, n)]
+            assert len(scorers) == min(n, pool.PARENT_SCORERS)
+            # consecutive members from i mod n on, wrapping around
+            assert sorted(scorers) == sorted((i + k) % n for k in range(len(scorers)))
+            counts.update(scorers)
+        assert set(counts.values()) == {3 * min(n, pool.PARENT_SCORERS)}  # each member takes its turn equally
+
+
+def test_without_any_report_of_the_parent_the_best_branch_wins(tmp_path):
+    """All the members due to re-score the parent are missing: the selection is the branches' (as
+    with --selection branches), and a later report from any member counts again."""
+    paths, cfg = make_pool(tmp_path / "p", pool_size=5)
+    for m, r in ((3, 4.0), (4, 6.0)):
+        _deposit(paths, 1, m, r)
+    sel = _decide(paths, cfg, 1, {3, 4})
+    assert (sel["winner"], sel["member"], sel["parent"]["eval_return"]) == ("branch", 4, None)
+    _deposit(paths, 2, 3, 1.0)
+    _deposit(paths, 2, 4, 2.0, parent=7.0)
+    sel = _decide(paths, cfg, 2, {3, 4})
+    assert (sel["winner"], sel["eval_return"]) == ("parent", 7.0)
+
+
 def test_selection_is_a_pure_function_of_the_files(tmp_path):
     paths, cfg = make_pool(tmp_path / "p", pool_size=3)
     for m, r in [(2, 4.0), (0, 7.0), (1, 7.5)]:  # written in another order than member order
