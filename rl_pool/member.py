@@ -250,7 +250,7 @@ def _loop(paths: pool.Paths, cfg: PoolConfig, mc: MemberConfig, hb: pool.Heartbe
                 pool.deposit(paths, i, me, tr.agent, metrics)
                 mine = ev.mean
                 hb.update(last_return=mine)
-            hb.set(state="waiting", iteration=i)
+            hb.set_soon(state="waiting", iteration=i)  # a short wait is not worth a write
             res = pool.barrier(paths, i, cfg, me, like, quorum, mc.barrier_timeout, liveness,
                                poll_max=mc.poll_max_for(cfg.pool_size), previous=prev, check=_stop.check)
             pool.fsutil.write_json(paths.wait_json(i, me),

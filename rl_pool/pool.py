@@ -364,6 +364,10 @@ def load_selected_agent(paths: Paths, i: int, sel: dict | None = None, like: Age
     sel = sel if sel is not None else read_selected(paths, i)
     if sel is None:
         raise RuntimeError(f"iteration {i} has no selection")
+    known = _parsed.get(sel.get("agent_sha256"))
+    if known is not None:  # parsed from bytes with that hash already (the parent kept, the winner we checked)
+        _parsed.move_to_end(sel["agent_sha256"])
+        return known
     path = paths.resolve(sel["agent"])
     cap = max_file_bytes(like.meta) if like is not None else fsutil.AGENT_MAX_BYTES
     try:
@@ -830,18 +834,28 @@ def read_heartbeat(paths: Paths, m: int) -> dict | None:
 
 
 class Heartbeat:
-    """This member's heartbeat: rewritten on every state change and every ``interval`` seconds.
+    """This member's heartbeat: rewritten on state changes and at least every ``interval`` seconds.
 
     ``beat`` increases on every write; observers judge liveness by whether the
-    file changes, not by comparing clocks across hosts.
+    file changes, not by comparing clocks across hosts. :meth:`set` writes at
+    once (a member starting an iteration); :meth:`set_soon` (a member starting to
+    wait) leaves a change less than :attr:`MIN_GAP` seconds after the last write to
+    the beat thread, which writes when the gap has passed, unless a write came
+    first: a pool whose iterations take tens of milliseconds would otherwise
+    replace every heartbeat file twice an iteration on the shared filesystem.
     """
+
+    MIN_GAP = 0.2
 
     def __init__(self, paths: Paths, member: int, interval: float, extra: dict):
         self.paths, self.member, self.interval = paths, member, interval
         self.doc = {"member": member, "pid": os.getpid(), "host": HOST, "beat": 0,
                     "state": "starting", "iteration": None, **extra}
-        self._lock = threading.Lock()
-        self._stop = threading.Event()
+        self._cond = threading.Condition()  # guards doc, _last, _pending, _stopped
+        self._io = threading.Lock()  # one write at a time, so the file never goes back to an older beat
+        self._last = float("-inf")  # monotonic time of the last write
+        self._pending = False
+        self._stopped = False
         self._thread = threading.Thread(target=self._run, name="heartbeat", daemon=True)
 
     def start(self) -> Heartbeat:
@@ -850,33 +864,59 @@ class Heartbeat:
         return self
 
     def set(self, **fields) -> None:
+        """Change fields and write them now."""
         self.update(**fields)
+        self.write()
+
+    def set_soon(self, **fields) -> None:
+        """Change fields and write them now, or, within :attr:`MIN_GAP` of the last write, when the
+        gap has passed (whatever the fields are then: a later ``set`` may have made this moot)."""
+        with self._cond:
+            self.doc.update(fields)
+            if time.monotonic() - self._last < self.MIN_GAP:
+                self._pending = True
+                self._cond.notify()
+                return
         self.write()
 
     def update(self, **fields) -> None:
         """Change fields for the next write (a state change, or the periodic beat), without writing."""
-        with self._lock:
+        with self._cond:
             self.doc.update(fields)
 
     def write(self) -> None:
-        with self._lock:
-            self.doc["beat"] += 1
-            self.doc["time"] = time.time()
-            data = fsutil.dumps(self.paths.sign(fsutil.finite_or_null(self.doc)))
-        try:
-            fsutil.atomic_write(self.paths.heartbeat(self.member), data, durable=False)
-        except OSError as exc:
-            log.warning("heartbeat write failed: %s", exc)
+        with self._io:
+            with self._cond:
+                self.doc["beat"] += 1
+                self.doc["time"] = time.time()
+                self._last, self._pending = time.monotonic(), False
+                data = fsutil.dumps(self.paths.sign(fsutil.finite_or_null(self.doc)))
+            try:
+                fsutil.atomic_write(self.paths.heartbeat(self.member), data, durable=False)
+            except OSError as exc:
+                log.warning("heartbeat write failed: %s", exc)
 
     def _run(self) -> None:
-        while not self._stop.wait(self.interval):
+        while True:
+            with self._cond:
+                if self._stopped:
+                    return
+                due = self._last + (self.MIN_GAP if self._pending else self.interval)
+                left = due - time.monotonic()
+                if left > 0:
+                    self._cond.wait(left)
+                    continue
             self.write()
 
     def stop(self, state: str, **fields) -> None:
-        self._stop.set()
+        """Stop the beat thread and write the final state at once."""
+        with self._cond:
+            self._stopped = True
+            self._cond.notify()
         if self._thread.is_alive():
             self._thread.join(timeout=5)
-        self.set(state=state, **fields)
+        self.update(state=state, **fields)
+        self.write()
 
 
 class Liveness:

@@ -36,6 +36,22 @@ def spawn(*args, **kw) -> subprocess.Popen:
                             stderr=subprocess.PIPE, text=True, cwd=ROOT, **kw)
 
 
+def past_its_deposit(d, m, since: int) -> int | None:
+    """The iteration k >= ``since`` whose deposit member ``m`` of the pool in ``d`` has made while
+    the pool has not started iteration k + 1 yet (no directory for it), judged from the files
+    alone; else None. That member is then waiting at k's barrier, or deciding, or just done
+    (a heartbeat need not say "waiting": a short wait is not written)."""
+    it = os.path.join(os.fspath(d), "iterations")
+    try:
+        ks = sorted(int(n) for n in os.listdir(it) if n.isdigit())
+    except OSError:
+        return None
+    k = ks[-1] if ks else -1
+    if k >= since and os.path.exists(os.path.join(it, f"{k:06d}", f"member-{m:03d}.json")):
+        return k
+    return None
+
+
 @pytest.fixture
 def cli():
     return rl_pool

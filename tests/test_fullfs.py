@@ -17,7 +17,7 @@ import pytest
 
 from rl_pool.agent import Agent
 
-from .conftest import SHORT, rl_pool, spawn
+from .conftest import SHORT, past_its_deposit, rl_pool, spawn
 from .test_multiprocess import history
 
 pytestmark = pytest.mark.multiprocess
@@ -80,6 +80,8 @@ def test_full_disk_stops_a_member_in_one_line_and_a_restart_resumes_exactly(tmpf
             doc = json.loads(hb.read_text())
         except (OSError, ValueError):
             doc = {}
+        if when == "waiting" and past_its_deposit(d, 0, since=2) is not None:
+            break
         if doc.get("state") == when and (doc.get("iteration") or 0) >= 2:
             break
         time.sleep(0.001)

@@ -10,7 +10,7 @@ import pytest
 
 from rl_pool import Agent, pool
 
-from .conftest import SHORT, rl_pool, spawn
+from .conftest import SHORT, past_its_deposit, rl_pool, spawn
 
 pytestmark = pytest.mark.multiprocess
 
@@ -113,13 +113,17 @@ def test_kill_and_restart_reproduces_the_uninterrupted_history(reference, tmp_pa
     deadline = time.time() + 120
     killed_at = None
     while time.time() < deadline:
-        try:
-            doc = json.loads(hb.read_text())
-        except (OSError, ValueError):
-            doc = {}
-        if doc.get("state") == state and (doc.get("iteration") or 0) >= 3:
+        if state == "waiting":
+            at = past_its_deposit(d, 1, since=3)
+        else:
+            try:
+                doc = json.loads(hb.read_text())
+            except (OSError, ValueError):
+                doc = {}
+            at = doc["iteration"] if doc.get("state") == state and (doc.get("iteration") or 0) >= 3 else None
+        if at is not None:
             m1.send_signal(sig)
-            killed_at = doc["iteration"]
+            killed_at = at
             break
         time.sleep(0.001)
     assert killed_at is not None, f"member 1 never was {state} in iteration >= 3"

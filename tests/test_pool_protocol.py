@@ -228,6 +228,30 @@ def test_liveness_judges_change_not_clocks(tmp_path):
     assert "gone" in live.stale(1)
 
 
+def test_a_heartbeat_writes_a_quick_state_change_when_its_gap_has_passed(tmp_path):
+    import time
+
+    paths, _cfg = make_pool(tmp_path / "p", pool_size=1)
+    hb = pool.Heartbeat(paths, 0, interval=30.0, extra={}).start()
+    read = lambda: pool.read_heartbeat(paths, 0)  # noqa: E731
+    assert (read()["state"], read()["beat"]) == ("starting", 1)
+    hb.set(state="training", iteration=1)  # written at once
+    assert (read()["state"], read()["iteration"], read()["beat"]) == ("training", 1, 2)
+    hb.set_soon(state="waiting")  # within the gap: left to the beat thread
+    assert read()["state"] == "training"
+    time.sleep(pool.Heartbeat.MIN_GAP + 0.3)
+    assert (read()["state"], read()["beat"]) == ("waiting", 3)
+    # a change after the gap is written at once; one made moot by a write before the gap ends is not rewritten
+    hb.set_soon(state="waiting", iteration=2)
+    assert (read()["iteration"], read()["beat"]) == (2, 4)
+    hb.set_soon(state="waiting", iteration=3)
+    hb.set(state="training", iteration=4)
+    time.sleep(pool.Heartbeat.MIN_GAP + 0.3)
+    assert (read()["state"], read()["iteration"], read()["beat"]) == ("training", 4, 5)
+    hb.stop("finished")
+    assert (read()["state"], read()["beat"]) == ("finished", 6)
+
+
 def test_barrier_lists_again_after_a_stale_verdict(tmp_path):
     """A member that deposits and then stops between two polls is not left out."""
     paths, cfg = make_pool(tmp_path / "p", pool_size=3)
