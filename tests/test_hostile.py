@@ -117,6 +117,21 @@ def test_directories_sockets_and_paths_out_of_the_pool_are_refused(tmp_path):
         lambda: fsutil.read_json(root / ".." / "outside.json", root=root)).strerror
 
 
+@pytest.mark.parametrize("rel", ["iterations/000007", "", "/", "a/../b", "./a", "/a", "a/", "../pool/a", "a/..",
+                                 "iterations/000007/.selected.json.once", ".hidden/x", "../outside", "a/../../x"])
+def test_paths_below_a_pool_split_as_the_general_rule_says(rel):
+    """The quick split of an already normal path below a pool's root agrees with the general
+    rule (normalise, then relative to the root) on every spelling, "." and ".." included."""
+    root = fsutil.Root("/tmp/some/pool")
+    path = root + "/" + rel
+    want = os.path.relpath(os.path.abspath(path), root).split(os.sep)
+    want = [p for p in want if p not in ("", ".")]
+    if ".." in want:
+        assert "outside the pool" in _refused(lambda: fsutil._parts(path, root)).strerror
+    else:
+        assert fsutil._parts(path, root) == want
+
+
 def test_size_cap_is_checked_before_reading(tmp_path):
     p = tmp_path / "big.npz"
     with open(p, "wb") as fh:
