@@ -371,6 +371,35 @@ def _protocol_pool(n: int, dirs: list[str], iterations: int, warmup: int, extra:
             shutil.rmtree(r, ignore_errors=True)
 
 
+def _plain_pool(n: int, dirs: list[str], iterations: int, warmup: int, extra: list[str]) -> float:
+    """ms per iteration of the same pool with nothing counted: members run as ``rl-pool train``;
+    the mean gap between the decisions of iterations ``warmup`` and ``iterations``."""
+    from . import pool as pool_mod
+
+    name = f"bench-plain-{n}-{os.getpid()}-{time.time_ns() % 10**6}"
+    roots = [os.path.join(d, name) for d in dirs]
+    procs = []
+    try:
+        for m in range(n):
+            cmd = [sys.executable, "-m", "rl_pool", "train", "--pool-dir", roots[m % len(roots)], "--pool-size",
+                   str(n), "--member", str(m), "--iterations", str(iterations), "--learning-rate", "0.1",
+                   "--quiet", *extra]
+            procs.append(subprocess.Popen(cmd, env=capped_environ(), stdout=subprocess.DEVNULL,
+                                          stderr=subprocess.PIPE, text=True))
+        for p in procs:
+            _, err = p.communicate()
+            if p.returncode != 0:
+                raise SystemExit(f"member exited with {p.returncode}: {err.strip()[-500:]}")
+        paths = pool_mod.Paths(roots[0])
+        t0, t1 = (pool_mod.read_selected(paths, i)["time"] for i in (warmup, iterations))
+        return 1000 * (t1 - t0) / (iterations - warmup)
+    finally:
+        for p in procs:
+            if p.poll() is None:
+                p.kill()
+        shutil.rmtree(roots[0], ignore_errors=True)
+
+
 def protocol(args) -> None:
     """Protocol cost per member and iteration with trivial work: time, opens, listings, stats."""
     base = None if args.dir else tempfile.mkdtemp(prefix="rl-pool-bench-")
@@ -382,21 +411,25 @@ def protocol(args) -> None:
     print(f"env {args.env}, 10-step episodes, 1 training + 1 evaluation episode{parent} per member and iteration, "
           f"{args.iterations} iterations (first {args.warmup} not counted); pool on {', '.join(dirs)}")
     print("per member and iteration (mean over members and iterations; ms: median):")
-    print(f"{'N':>4} {'ms/iter':>8} {'cpu ms':>6} {'floor':>6} {'reads':>6} {'writes':>6} {'missing':>7} {'dir opens':>9} "
-          f"{'listings':>8} {'stats':>6} {'renames':>7} {'fsyncs':>6} {'reads <= N+3':>12}")
+    print(f"{'N':>4} {'ms/iter':>8} {'plain':>6} {'cpu ms':>6} {'floor':>6} {'reads':>6} {'writes':>6} {'missing':>7} "
+          f"{'dir opens':>9} {'listings':>8} {'stats':>6} {'renames':>7} {'fsyncs':>6} {'reads <= N+3':>12}")
     rows = []
     try:
         for n in args.members:
             r = _protocol_pool(n, dirs, args.iterations, args.warmup, extra)
+            r["plain_ms"] = _plain_pool(n, dirs, args.iterations, args.warmup, extra)
             rows.append({"members": n, **r})
             floor = n * r["cpu_ms"] / min(n, os.cpu_count() or 1)
-            print(f"{n:>4} {r['ms']:>8.1f} {r['cpu_ms']:>6.1f} {floor:>6.0f} {r['open_read']:>6.1f} {r['open_write']:>6.1f} "
+            print(f"{n:>4} {r['ms']:>8.1f} {r['plain_ms']:>6.1f} {r['cpu_ms']:>6.1f} {floor:>6.0f} {r['open_read']:>6.1f} "
+                  f"{r['open_write']:>6.1f} "
                   f"{r['open_missing']:>7.1f} {r['open_dir']:>9.1f} {r['listing']:>8.1f} {r['stat']:>6.1f} "
                   f"{r['rename']:>7.1f} {r['fsync']:>6.1f} {'yes' if r['open_read'] <= n + 3 else 'no':>12}",
                   flush=True)
     finally:
         if base:
             shutil.rmtree(base, ignore_errors=True)
+    print("ms/iter: with every file call counted (a Python wrapper around each); plain: the same pool again with "
+          "nothing counted (mean gap between decisions)")
     print(f"cpu ms: a member's own CPU time per iteration (all its threads); floor: N x cpu ms / cores used "
           f"(min(N, {os.cpu_count()})), the shortest iteration these CPUs allow whatever the protocol does;")
     print("reads/writes: files opened to read/write; missing: opens of names not there (yet): polls;")
