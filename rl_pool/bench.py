@@ -333,22 +333,33 @@ KINDS = ("open_read", "open_write", "open_missing", "open_dir", "listing", "stat
          "mkdir", "unlink")
 
 
-def _protocol_pool(n: int, dirs: list[str], iterations: int, warmup: int, extra: list[str]) -> dict:
-    name = f"bench-protocol-{n}-{os.getpid()}-{time.time_ns() % 10**6}"
-    roots = [os.path.join(d, name) for d in dirs]
-    counts = tempfile.mkdtemp(prefix="rl-pool-counts-")
+def _run_members(n: int, roots: list[str], iterations: int, extra: list[str], head) -> None:
+    """Run an N-member pool of ``rl-pool train`` processes to its end; ``head(m)`` is the command
+    line before ``train`` for member ``m``. A member exiting non-zero stops the bench in one line."""
     procs = []
     try:
         for m in range(n):
-            cmd = [sys.executable, "-m", "rl_pool.bench", "_member", os.path.join(counts, f"{m}.json"), "--",
-                   "train", "--pool-dir", roots[m % len(roots)], "--pool-size", str(n), "--member", str(m),
-                   "--iterations", str(iterations), "--learning-rate", "0.1", "--quiet", *extra]
+            cmd = [*head(m), "train", "--pool-dir", roots[m % len(roots)], "--pool-size", str(n), "--member",
+                   str(m), "--iterations", str(iterations), "--learning-rate", "0.1", "--quiet", *extra]
             procs.append(subprocess.Popen(cmd, env=capped_environ(), stdout=subprocess.DEVNULL,
                                           stderr=subprocess.PIPE, text=True))
         for p in procs:
             _, err = p.communicate()
             if p.returncode != 0:
                 raise SystemExit(f"member exited with {p.returncode}: {err.strip()[-500:]}")
+    finally:
+        for p in procs:
+            if p.poll() is None:
+                p.kill()
+
+
+def _protocol_pool(n: int, dirs: list[str], iterations: int, warmup: int, extra: list[str]) -> dict:
+    name = f"bench-protocol-{n}-{os.getpid()}-{time.time_ns() % 10**6}"
+    roots = [os.path.join(d, name) for d in dirs]
+    counts = tempfile.mkdtemp(prefix="rl-pool-counts-")
+    try:
+        _run_members(n, roots, iterations, extra, lambda m: [sys.executable, "-m", "rl_pool.bench", "_member",
+                                                             os.path.join(counts, f"{m}.json"), "--"])
         per_kind = {k: [] for k in KINDS}
         secs, cpu = [], []
         for m in range(n):
@@ -363,12 +374,8 @@ def _protocol_pool(n: int, dirs: list[str], iterations: int, warmup: int, extra:
                 **{k: statistics.mean(v) for k, v in per_kind.items()},
                 "cycles": len(secs)}
     finally:
-        for p in procs:
-            if p.poll() is None:
-                p.kill()
         shutil.rmtree(counts, ignore_errors=True)
-        for r in roots[:1]:
-            shutil.rmtree(r, ignore_errors=True)
+        shutil.rmtree(roots[0], ignore_errors=True)
 
 
 def _plain_pool(n: int, dirs: list[str], iterations: int, warmup: int, extra: list[str]) -> float:
@@ -378,39 +385,29 @@ def _plain_pool(n: int, dirs: list[str], iterations: int, warmup: int, extra: li
 
     name = f"bench-plain-{n}-{os.getpid()}-{time.time_ns() % 10**6}"
     roots = [os.path.join(d, name) for d in dirs]
-    procs = []
     try:
-        for m in range(n):
-            cmd = [sys.executable, "-m", "rl_pool", "train", "--pool-dir", roots[m % len(roots)], "--pool-size",
-                   str(n), "--member", str(m), "--iterations", str(iterations), "--learning-rate", "0.1",
-                   "--quiet", *extra]
-            procs.append(subprocess.Popen(cmd, env=capped_environ(), stdout=subprocess.DEVNULL,
-                                          stderr=subprocess.PIPE, text=True))
-        for p in procs:
-            _, err = p.communicate()
-            if p.returncode != 0:
-                raise SystemExit(f"member exited with {p.returncode}: {err.strip()[-500:]}")
+        _run_members(n, roots, iterations, extra, lambda m: [sys.executable, "-m", "rl_pool"])
         paths = pool_mod.Paths(roots[0])
         t0, t1 = (pool_mod.read_selected(paths, i)["time"] for i in (warmup, iterations))
         return 1000 * (t1 - t0) / (iterations - warmup)
     finally:
-        for p in procs:
-            if p.poll() is None:
-                p.kill()
         shutil.rmtree(roots[0], ignore_errors=True)
 
 
 def protocol(args) -> None:
     """Protocol cost per member and iteration with trivial work: time, opens, listings, stats."""
+    if not 1 <= args.warmup <= args.iterations - 2:
+        # iteration 0's decision (the initial agent) has no time; a median needs two counted gaps
+        raise SystemExit("bench protocol: need 1 <= --warmup <= --iterations - 2")
     base = None if args.dir else tempfile.mkdtemp(prefix="rl-pool-bench-")
     dirs = args.dir or [base]
     extra = ["--env", args.env, "--max-episode-steps", "10", "--train-episodes", "1", "--batch-episodes", "1",
              "--eval-episodes", "1", "--heartbeat-timeout", "600", "--barrier-timeout", "600",
              "--selection", args.selection]
-    parent = " + the parent's re-score" if args.selection == "parent" else ""
+    parent = " + the parent's re-score (3 members, all in pools of up to 3)" if args.selection == "parent" else ""
     print(f"env {args.env}, 10-step episodes, 1 training + 1 evaluation episode{parent} per member and iteration, "
           f"{args.iterations} iterations (first {args.warmup} not counted); pool on {', '.join(dirs)}")
-    print("per member and iteration (mean over members and iterations; ms: median):")
+    print("per member and iteration (mean over members and iterations; ms/iter and cpu ms: median; plain: mean):")
     print(f"{'N':>4} {'ms/iter':>8} {'plain':>6} {'cpu ms':>6} {'floor':>6} {'reads':>6} {'writes':>6} {'missing':>7} "
           f"{'dir opens':>9} {'listings':>8} {'stats':>6} {'renames':>7} {'fsyncs':>6} {'reads <= N+3':>12}")
     rows = []
@@ -521,7 +518,7 @@ def main(argv=None) -> None:
                          "directory (members alternate between them)")
     pr.add_argument("--selection", default="parent", choices=("parent", "branches"),
                     help="the pool's --selection: parent (the default) also re-scores the parent each "
-                         "iteration, one more evaluation episode of work per member")
+                         "iteration, one more evaluation episode for three members (all in pools of up to 3)")
     pr.add_argument("--json", action="store_true", help="also print the rows as one JSON list")
     pr.set_defaults(func=protocol)
     m = sub.add_parser("_member")  # internal: one member under the filesystem-call counter

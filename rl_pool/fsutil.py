@@ -171,7 +171,7 @@ def _not_regular(st: os.stat_result, path: str) -> UnsafeFile:
 
 def _parts(path: str, root: str) -> list[str]:
     """``path``'s components below ``root``; UnsafeFile if it is not below it."""
-    if isinstance(root, Root) and path.startswith(root + os.sep) and os.path.isabs(path):
+    if isinstance(root, Root) and path.startswith(root + os.sep):  # a Root is absolute, so is path
         # The common case, cheaply (a member walks a dozen paths an iteration): an absolute, already
         # normal path below the pool's (normal) root; anything else is normalised below.
         parts = path[len(root) + 1:].split(os.sep)

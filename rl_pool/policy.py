@@ -166,8 +166,15 @@ def beta_params(params: dict, x, spec: PolicySpec, xp=np):
     return ab[..., :act_dim], ab[..., act_dim:]
 
 
-def clip_unit(u, xp=np):
-    return xp.clip(u, EPS, 1.0 - EPS)
+def clip_unit(u, xp=np, out=None):
+    """``u`` clipped into ``[EPS, 1 - EPS]``, in place into ``out`` (NumPy only) when given.
+
+    ``minimum(maximum(...))`` gives clip's numbers; NumPy's ``clip`` wrapper costs as much as
+    the arithmetic on the small arrays of a rollout step.
+    """
+    if out is not None:
+        return np.minimum(np.maximum(u, EPS, out=out), 1.0 - EPS, out=out)
+    return xp.minimum(xp.maximum(u, EPS), 1.0 - EPS)
 
 
 def beta_log_prob(u, alpha, beta, xp=np, gammaln=None):

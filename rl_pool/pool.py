@@ -521,9 +521,17 @@ PARENT_SCORERS = 3
 
 
 def scores_parent(i: int, m: int, pool_size: int) -> bool:
-    """Whether member ``m`` re-scores the parent in iteration ``i``: :data:`PARENT_SCORERS`
-    consecutive members starting at ``i mod N`` (every member in a pool that small)."""
-    return (m - i) % pool_size < min(pool_size, PARENT_SCORERS)
+    """Whether member ``m`` re-scores the parent in iteration ``i``: every member in a pool of up
+    to :data:`PARENT_SCORERS`, else members ``i``, ``i + N//3`` and ``i + 2N//3`` (mod N).
+
+    Spread over the pool, not consecutive: array jobs place consecutive members on one node, and
+    losing a node should not take every scorer of an iteration with it.
+    """
+    if pool_size <= PARENT_SCORERS:
+        return True
+    offset = (m - i) % pool_size
+    step = pool_size // PARENT_SCORERS
+    return offset % step == 0 and offset // step < PARENT_SCORERS
 
 
 def parent_report(docs: list[dict], parent_sha: str, shifted: bool = False) -> dict | None:
@@ -834,7 +842,7 @@ def read_heartbeat(paths: Paths, m: int) -> dict | None:
 
 
 class Heartbeat:
-    """This member's heartbeat: rewritten on state changes and at least every ``interval`` seconds.
+    """This member's heartbeat: rewritten on :meth:`set` and at least every ``interval`` seconds.
 
     ``beat`` increases on every write; observers judge liveness by whether the
     file changes, not by comparing clocks across hosts. :meth:`set` writes at

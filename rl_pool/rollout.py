@@ -78,7 +78,7 @@ def run_episodes(envs, params: dict, spec: policy.PolicySpec, norm, low, high, s
             u = a / (a + b)
         else:
             u = rng.beta(a, b)
-            np.minimum(np.maximum(u, policy.EPS, out=u), 1.0 - policy.EPS, out=u)  # policy.clip_unit
+            policy.clip_unit(u, out=u)
         actions = low + u * span
         at = slice(None) if all_active else active
         if record:

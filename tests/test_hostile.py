@@ -117,13 +117,18 @@ def test_directories_sockets_and_paths_out_of_the_pool_are_refused(tmp_path):
         lambda: fsutil.read_json(root / ".." / "outside.json", root=root)).strerror
 
 
-@pytest.mark.parametrize("rel", ["iterations/000007", "", "/", "a/../b", "./a", "/a", "a/", "../pool/a", "a/..",
-                                 "iterations/000007/.selected.json.once", ".hidden/x", "../outside", "a/../../x"])
-def test_paths_below_a_pool_split_as_the_general_rule_says(rel):
+_POOL = "/tmp/some/pool"
+
+
+@pytest.mark.parametrize("path", [_POOL + "/" + rel for rel in [
+    "iterations/000007", "", "/", "a/../b", "./a", "/a", "a/", "../pool/a", "a/..",
+    "iterations/000007/.selected.json.once", ".hidden/x", "../outside", "a/../../x", "../pool2/x"]]
+    + [_POOL, _POOL + "2/x", _POOL + "x", "/tmp/some", "/tmp/some/poo", "pool/a", "/tmp/some//pool/a"])
+def test_paths_below_a_pool_split_as_the_general_rule_says(path):
     """The quick split of an already normal path below a pool's root agrees with the general
-    rule (normalise, then relative to the root) on every spelling, "." and ".." included."""
-    root = fsutil.Root("/tmp/some/pool")
-    path = root + "/" + rel
+    rule (normalise, then relative to the root) on every spelling, "." and ".." included, and
+    a sibling whose name starts with the pool's is outside it."""
+    root = fsutil.Root(_POOL)
     want = os.path.relpath(os.path.abspath(path), root).split(os.sep)
     want = [p for p in want if p not in ("", ".")]
     if ".." in want:
