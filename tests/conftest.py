@@ -36,12 +36,18 @@ def spawn(*args, **kw) -> subprocess.Popen:
                             stderr=subprocess.PIPE, text=True, cwd=ROOT, **kw)
 
 
-def past_its_deposit(d, m, since: int) -> int | None:
+def past_its_deposit(d, m, since: int, at_latest: int | None = None) -> int | None:
     """The iteration k >= ``since`` whose deposit member ``m`` of the pool in ``d`` has made while
     the pool has not started iteration k + 1 yet (no directory for it), judged from the files
     alone; else None. That member is then waiting at k's barrier, or deciding, or just done
-    (a heartbeat need not say "waiting": a short wait is not written)."""
+    (a heartbeat need not say "waiting": a short wait is not written).
+
+    A member that decides is past its deposit for milliseconds only, so polls can miss every
+    such window: with ``at_latest``, its deposit of that iteration answers ``at_latest``
+    whatever the member does by then."""
     it = os.path.join(os.fspath(d), "iterations")
+    if at_latest is not None and os.path.exists(os.path.join(it, f"{at_latest:06d}", f"member-{m:03d}.json")):
+        return at_latest
     try:
         ks = sorted(int(n) for n in os.listdir(it) if n.isdigit())
     except OSError:

@@ -80,11 +80,7 @@ def test_full_disk_stops_a_member_in_one_line_and_a_restart_resumes_exactly(tmpf
             doc = json.loads(hb.read_text())
         except (OSError, ValueError):
             doc = {}
-        # A 1-member pool is past its deposit and before its next iteration for milliseconds: if the
-        # polls miss that window in iterations 2 and 3, fill at iteration 4's deposit whatever
-        # the member does then (deciding, or training its last iteration), while it still runs.
-        if when == "waiting" and (past_its_deposit(d, 0, since=2) is not None
-                                  or os.path.exists(d / f"iterations/{ITERS - 1:06d}/member-000.json")):
+        if when == "waiting" and past_its_deposit(d, 0, since=2, at_latest=ITERS - 1) is not None:
             break
         if doc.get("state") == when and (doc.get("iteration") or 0) >= 2:
             break

@@ -114,12 +114,7 @@ def test_kill_and_restart_reproduces_the_uninterrupted_history(reference, tmp_pa
     killed_at = None
     while time.time() < deadline:
         if state == "waiting":
-            # Past its deposit, before the next iteration: long when member 1 deposits first, a few
-            # milliseconds when it decides. Should the polls miss every such window up to then,
-            # kill at the deposit of iteration ITERS - 1 whatever member 1 does at that moment.
-            at = past_its_deposit(d, 1, since=3)
-            if at is None and os.path.exists(d / f"iterations/{ITERS - 1:06d}/member-001.json"):
-                at = ITERS - 1
+            at = past_its_deposit(d, 1, since=3, at_latest=ITERS - 1)
         else:
             try:
                 doc = json.loads(hb.read_text())

@@ -442,7 +442,7 @@ def test_three_members_in_turn_re_score_the_parent():
                 assert len({(start + j) % n for j in range(step)} & set(scorers)) <= 1
             counts.update(scorers)
         if n > 3:
-            assert set(counts.values()) == {9}  # each member takes its turn equally: 3 times in n iterations
+            assert set(counts.values()) == {9}  # each member takes its turn equally: 3 times every n iterations
 
 
 def test_without_any_report_of_the_parent_the_best_branch_wins(tmp_path):
