@@ -173,9 +173,16 @@ def test_payload_too_large_is_refused_before_anything_is_written(tmp_path):
 
 
 def _racer(root: str, names: int, me: int, barrier, out) -> None:
+    import random
+    import time
+
+    jitter = random.Random(me)
     results = []
     for k in range(names):
         barrier.wait()
+        # Up to 2 ms apart, so that no racer wins every race by always leaving the barrier first
+        # (seen on SeaweedFS: the mount that made the directory won 30 of 30); claims still overlap.
+        time.sleep(jitter.uniform(0, 0.002))
         data = json.dumps({"racer": me, "name": k}).encode()
         results.append(claim.create_once(os.path.join(root, f"d{k:03d}.json"), data))
     out.put((me, results))
