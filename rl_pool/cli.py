@@ -314,6 +314,11 @@ def main(argv=None) -> int:
     except UsageError as exc:
         sys.stderr.write(f"rl-pool: error: {exc}\n")
         return 2
+    except BrokenPipeError:
+        # The reader left (`rl-pool status DIR | head`): not an error. Before OSError, which it is
+        # one of; stdout goes to /dev/null so the interpreter's last flush cannot fail again.
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        return 0
     except OSError as exc:
         # a path the user gave that cannot be written or read (no such directory, permissions, full disk)
         where = f" {exc.filename!r}" if exc.filename else ""
@@ -325,8 +330,6 @@ def main(argv=None) -> int:
     except KeyboardInterrupt:
         sys.stderr.write("rl-pool: interrupted\n")
         return 130
-    except BrokenPipeError:
-        return 0
 
 
 if __name__ == "__main__":

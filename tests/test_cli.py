@@ -82,6 +82,24 @@ def test_status_csv_history(single_pool, tmp_path):
     assert rows[0]["member0_learning_rate"] == "0.1"
 
 
+@pytest.mark.parametrize("fmt", [[], ["--json"]])
+def test_status_into_a_closed_pipe_exits_quietly(single_pool, fmt):
+    """`rl-pool status DIR | head` where the reader has gone: no traceback, no error line."""
+    import subprocess
+    import sys
+
+    from .conftest import ROOT
+
+    r, w = os.pipe()
+    os.close(r)  # the reader is gone before the command writes a byte
+    try:
+        proc = subprocess.run([sys.executable, "-m", "rl_pool", "status", str(single_pool), *fmt],
+                              stdout=w, stderr=subprocess.PIPE, text=True, timeout=60, cwd=ROOT)
+    finally:
+        os.close(w)
+    assert proc.stderr == "" and proc.returncode == 0
+
+
 def test_rerun_on_finished_pool_changes_nothing_and_larger_target_continues(tmp_path):
     d = tmp_path / "p"
     rl_pool("train", "--pool-dir", d, "--iterations", 2, *SHORT, "--quiet", check=0)
