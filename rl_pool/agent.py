@@ -28,6 +28,8 @@ READS_VERSIONS = (1, 2)
 NORM_ARRAYS = ("obs_count", "obs_mean", "obs_m2")
 META_MAX_BYTES = 1 << 16
 NPY_HEADER_MAX = 4096
+#: Every .npz starts with a zip local-file header.
+ZIP_MAGIC = b"PK\x03\x04"
 #: Zip bookkeeping per array (local header + central directory entry, names included), generously.
 ZIP_ENTRY_MAX = 512
 
@@ -205,6 +207,11 @@ class Agent:
         directory fits the shape the meta implies, so a small hostile file
         cannot make the reader allocate gigabytes.
         """
+        if not data.startswith(ZIP_MAGIC):
+            # Checked first so that numpy's reply to a non-zip file (a pickle, with advice on
+            # loading it unsafely) never reaches the user, and np.load only ever sees a zip.
+            raise AgentFileError(f"{source}: not an rl-pool agent file (an .npz is a zip archive; "
+                                 f"this starts with {bytes(data[:8])!r})")
         try:
             with np.load(io.BytesIO(data), allow_pickle=False) as z:
                 if "meta" not in z.files:

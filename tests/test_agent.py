@@ -76,6 +76,26 @@ def test_pickled_object_is_refused_and_never_run(tmp_path):
     assert not marker.exists()
 
 
+@pytest.mark.parametrize("what", ["text", "pickle", "npy", "empty"])
+def test_files_that_are_not_zip_archives_are_refused_as_such(tmp_path, what):
+    """A text file, a bare pickle or .npy is "not an rl-pool agent file"; the reply never passes on
+    numpy's advice to load a pickle unsafely, and the pickle never runs."""
+    import pickle
+
+    marker = tmp_path / "ran"
+    data = {"text": b"root:x:0:0:root:/root:/bin/bash\n", "pickle": pickle.dumps(Evil(marker)),
+            "npy": _npy(np.zeros(3)), "empty": b""}[what]
+    with pytest.raises(AgentFileError, match="not an rl-pool agent file") as err:
+        Agent.from_bytes(data, source="x.npz")
+    assert "pickle" not in str(err.value) and not marker.exists()
+
+
+def _npy(arr):
+    buf = io.BytesIO()
+    np.save(buf, arr)
+    return buf.getvalue()
+
+
 @pytest.mark.parametrize("change, match", [
     ({"param.w": np.zeros((3, 3))}, "shape"),
     ({"adam_v.w": -np.ones((9, 4))}, "negative"),
