@@ -67,7 +67,11 @@ class PoolConfig:
         """The policy this pool trains (:class:`rl_pool.policy.PolicySpec`)."""
         from .policy import PolicySpec
 
-        hidden = tuple(int(h) for h in self.hidden.split(",")) if self.policy == "mlp" else ()
+        try:
+            hidden = tuple(int(h) for h in self.hidden.split(",")) if self.policy == "mlp" else ()
+        except ValueError:
+            raise ValueError(f"hidden sizes must be comma-separated integers such as 64,64, got {self.hidden!r}") \
+                from None
         return PolicySpec(self.policy, hidden, self.link)
 
     @property

@@ -133,6 +133,8 @@ BAD = [
     (["--gamma", 1.5], "--gamma"),
     (["--env-kwargs", "[1, 2]"], "JSON object"),
     (["--learning-rate", "fast"], "invalid float"),
+    (["--policy", "mlp", "--hidden", "64x64"], "hidden sizes must be comma-separated integers"),
+    (["--policy", "mlp", "--hidden", "0,8"], "hidden sizes must be 1 to 8 layers"),
 ]
 
 
