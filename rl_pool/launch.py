@@ -78,26 +78,24 @@ def launch(pool_dir: str, requested: dict, member_opts: dict, learning_rates: li
             with fsutil.open_append(os.path.join(paths.logs, pool.member_name(m) + ".out"), root=paths.root) as out:
                 procs.append(subprocess.Popen(cmd, stdout=out, stderr=subprocess.STDOUT,
                                               stdin=subprocess.DEVNULL, env=env, start_new_session=True))
-        print(f"launched {n} members on {cfg.env} in {paths.root}; learning rates "
-              + ", ".join(f"m{m}={lr:g}" for m, lr in enumerate(lrs)), flush=True)
+        _say(f"launched {n} members on {cfg.env} in {paths.root}; learning rates "
+             + ", ".join(f"m{m}={lr:g}" for m, lr in enumerate(lrs)))
         codes = _watch(paths, procs, quiet, interval, started, target)
     except KeyboardInterrupt:
         interrupted = True
-        print("\nstopping members (deposits on disk are safe; run again to resume)...",
-              file=sys.stderr, flush=True)
+        _say("\nstopping members (deposits on disk are safe; run again to resume)...", sys.stderr)
         codes = _stop_all(procs, signal.SIGTERM)
     finally:
         _interrupt.restore(old)
     st = status.status(paths.root)
     b = st["best"]
-    print(f"iterations completed {st['iterations_completed']} in {progress.clock(time.time() - started)}; best "
-          + ("none" if b is None else f"{b['eval_return']:.2f} (iteration {b['iteration']}, {status.describe(b)})"),
-          flush=True)
+    _say(f"iterations completed {st['iterations_completed']} in {progress.clock(time.time() - started)}; best "
+         + ("none" if b is None else f"{b['eval_return']:.2f} (iteration {b['iteration']}, {status.describe(b)})"))
     if interrupted:
         return 130
     failed = [(m, c) for m, c in enumerate(codes) if c != 0]
     for m, c in failed:
-        print(f"member {m} failed (exit {c}): {_why(paths, m)}", file=sys.stderr)
+        _say(f"member {m} failed (exit {c}): {_why(paths, m)}", sys.stderr)
     return 1 if failed else 0
 
 
@@ -105,6 +103,21 @@ def launch(pool_dir: str, requested: dict, member_opts: dict, learning_rates: li
 #: process group as well (GNU timeout does that), must not cut the members' shutdown short and
 #: leave them training unattended. One lost in a finaliser is raised again by the watch loop.
 _interrupt = SignalLatch(lambda signum: KeyboardInterrupt())
+
+
+def _say(line: str, stream=None) -> None:
+    """Print a line if anyone can still read it. Output that closed (`launch | head`, a tee that
+    died) is not a reason to stop: the launcher goes on watching its members, as the progress
+    display does, and still exits with their status."""
+    stream = stream or sys.stdout
+    try:
+        print(line, file=stream, flush=True)
+    except BrokenPipeError:
+        # nothing more reaches it; /dev/null in its place keeps the interpreter's last flush quiet
+        with contextlib.suppress(OSError, ValueError):
+            os.dup2(os.open(os.devnull, os.O_WRONLY), stream.fileno())
+    except ValueError:  # closed
+        pass
 
 
 def _watch(paths, procs, quiet, interval, started, target) -> list[int]:
@@ -127,8 +140,7 @@ def _watch(paths, procs, quiet, interval, started, target) -> list[int]:
             time.sleep(0.1)
     if failed:
         bad = next(m for m, c in enumerate(codes) if c not in (None, 0))
-        print(f"member {bad} exited with {codes[bad]}: {_why(paths, bad)}; stopping the others",
-              file=sys.stderr, flush=True)
+        _say(f"member {bad} exited with {codes[bad]}: {_why(paths, bad)}; stopping the others", sys.stderr)
         return _stop_all(procs, signal.SIGTERM, keep=codes)
     return codes
 

@@ -300,15 +300,34 @@ def test_launch_forwards_sigterm_to_its_members(tmp_path, signals):
         assert json.loads((d / f"members/member-{m:03d}.json").read_text())["state"] == "stopped"
 
 
-def test_launch_surfaces_a_failed_member(tmp_path):
+@pytest.mark.parametrize("output", ["pipe", "closed"])
+def test_launch_surfaces_a_failed_member(tmp_path, output):
+    """Also when its output has closed (`launch | head`): the launcher keeps watching and still
+    exits 1, where a failed print of its summary once made it exit 0 or 2."""
+    import subprocess
+    import sys
+
+    from .conftest import ROOT
+
     d = tmp_path / "failing"
     rl_pool("launch", "--pool-dir", d, "--pool-size", 2, "--iterations", 1, *SHORT, check=0)
     # Corrupt the selected agent's file: every member needs it to train the next iteration.
     sel = json.loads((d / "iterations/000001/selected.json").read_text())
     (d / sel["agent"]).write_bytes(b"garbage")
-    proc = rl_pool("launch", "--pool-dir", d, "--iterations", 3, "--barrier-timeout", 30)
-    assert proc.returncode == 1
+    r, w = os.pipe()
+    if output == "closed":
+        os.close(r)  # the reader is gone before the launcher writes a byte
+    try:
+        proc = subprocess.run([sys.executable, "-m", "rl_pool", "launch", "--pool-dir", str(d), "--iterations", "3",
+                               "--barrier-timeout", "30"], stdout=w, stderr=subprocess.PIPE, text=True,
+                              timeout=180, cwd=ROOT)
+    finally:
+        os.close(w)
+        if output == "pipe":
+            os.close(r)
+    assert proc.returncode == 1, proc.stderr
     assert "failed" in proc.stderr and "does not match the hash" in proc.stderr
+    assert "Traceback" not in proc.stderr and "Exception ignored" not in proc.stderr
 
 
 def test_shell_pool_script_stops_on_signal_and_resumes(tmp_path):
