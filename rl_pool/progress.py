@@ -11,6 +11,7 @@ stdout is a pipe or a file (logs, SLURM output), so logs stay readable.
 
 from __future__ import annotations
 
+import contextlib
 import itertools
 import os
 import statistics
@@ -315,6 +316,8 @@ class Display:
         self._last_print = float("-inf")
         self._snap: Snapshot | None = None
         self._printed_snap: Snapshot | None = None
+        #: True once nothing written can reach a reader (a pipe whose reader left).
+        self.closed = False
 
     def __enter__(self) -> Display:
         if self.live is not None:
@@ -340,8 +343,15 @@ class Display:
         try:
             self.stream.write(line(snap) + "\n")
             self.stream.flush()
-        except (BrokenPipeError, ValueError):
-            pass
+        except BrokenPipeError:
+            # The reader has gone (`... | head`). A launcher goes on watching its members; a
+            # watcher (`status --watch`) stops. /dev/null takes the stream's place so that the
+            # interpreter's last flush does not fail again.
+            self.closed = True
+            with contextlib.suppress(OSError, ValueError, AttributeError):
+                os.dup2(os.open(os.devnull, os.O_WRONLY), self.stream.fileno())
+        except ValueError:  # a closed stream
+            self.closed = True
         self._printed_snap = snap
 
     def close(self) -> None:
@@ -405,7 +415,7 @@ def watch(pool_dir: str, interval: float | None = None, recent: int = 5, stream=
     try:
         with Display(stream, interval=interval if interval is not None else 10.0, live=is_live) as d:
             try:
-                while True:
+                while not d.closed:  # a reader that left (`--watch | head`) ends the watch
                     d.update(tracker.poll())
                     stop.check()
                     time.sleep(period)

@@ -82,9 +82,10 @@ def test_status_csv_history(single_pool, tmp_path):
     assert rows[0]["member0_learning_rate"] == "0.1"
 
 
-@pytest.mark.parametrize("fmt", [[], ["--json"]])
+@pytest.mark.parametrize("fmt", [[], ["--json"], ["--watch", "--interval", "0.1"]])
 def test_status_into_a_closed_pipe_exits_quietly(single_pool, fmt):
-    """`rl-pool status DIR | head` where the reader has gone: no traceback, no error line."""
+    """`rl-pool status DIR | head` where the reader has gone: no traceback, no error line; a
+    watcher ends instead of following the pool for nobody."""
     import subprocess
     import sys
 
