@@ -14,7 +14,7 @@ import multiprocessing as mp
 import os
 import time
 
-from .threads import THREAD_CAPS, cap_threads
+from .threads import VARIABLES, cap_threads
 
 
 class EvalWorker:
@@ -129,7 +129,7 @@ def evaluate_bytes(agent_bytes: bytes, episodes: int, workers: int = 1, seed: in
         scores = [worker(s) for s in seeds]
     else:
         ctx = mp.get_context("spawn")
-        saved = {k: os.environ.get(k) for k in THREAD_CAPS}
+        saved = {k: os.environ.get(k) for k in VARIABLES}
         cap_threads()  # children inherit these at spawn, before they import numpy
         try:
             with ctx.Pool(workers, initializer=_init, initargs=(worker,)) as p:

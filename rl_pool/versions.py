@@ -6,22 +6,41 @@ mujoco) is imported to learn its version.
 
 from __future__ import annotations
 
+import os
 import platform
 from importlib import metadata
+
+from . import threads
 
 #: Distributions whose versions decide what a pool computes, in display order.
 PACKAGES = ("rl-pool", "numpy", "jax", "jaxlib", "mujoco", "gymnasium")
 
 
 def versions() -> dict[str, str | None]:
-    """``{"python": "3.11.7", "rl-pool": "0.1.0", "numpy": ..., ...}``; None for a package not installed."""
+    """``{"python": "3.11.7", "rl-pool": "0.1.0", "numpy": ..., ..., "simd": "x86-64-v3"}``; None for
+    a package not installed. ``simd``: the SIMD code numpy and XLA may use in this process, which
+    decides the last bits as the versions do (:mod:`rl_pool.threads`)."""
     out: dict[str, str | None] = {"python": platform.python_version()}
     for name in PACKAGES:
         try:
             out[name] = metadata.version(name)
         except metadata.PackageNotFoundError:
             out[name] = None
+    out["simd"] = simd(os.environ)
     return out
+
+
+def simd(environ) -> str:
+    """``x86-64-v3`` (rl-pool's portable level), ``native`` (all the CPU has), ``custom`` (values
+    of the user's own), or the machine (not x86-64)."""
+    if platform.machine().lower() not in ("x86_64", "amd64"):
+        return platform.machine().lower() or "unknown"
+    xla = environ.get("XLA_FLAGS", "").split()
+    if all(environ.get(k) == v for k, v in threads.PORTABLE_SIMD.items()) and threads.XLA_MAX_ISA in xla:
+        return "x86-64-v3"
+    if not any(environ.get(k) for k in threads.PORTABLE_SIMD) and not any("xla_cpu_max_isa" in f for f in xla):
+        return "native"
+    return "custom"
 
 
 def differences(recorded: dict, current: dict | None = None) -> dict[str, tuple]:

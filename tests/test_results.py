@@ -3,6 +3,9 @@
 import csv
 import json
 import os
+import platform
+
+import pytest
 
 from rl_pool import Agent
 from rl_pool.evaluate import evaluate_bytes
@@ -26,3 +29,18 @@ def test_committed_history_matches_best():
         best = json.load(fh)
     top = max(rows, key=lambda r: float(r["eval_return"]))
     assert int(top["iteration"]) == best["iteration"] and float(top["eval_return"]) == best["eval_return"]
+
+
+@pytest.mark.skipif(platform.machine().lower() not in ("x86_64", "amd64"), reason="the portable level is x86-64's")
+def test_committed_re_score_replays_bit_for_bit_here():
+    """results/halfcheetah-v5/rescore.json was made on a machine without AVX-512. With numpy, OpenBLAS
+    and XLA held to x86-64-v3 code (rl_pool.threads), the real CLI gives the same returns to the
+    last bit on this machine, whatever its CPU has (without the cap an AVX-512 CPU gave other
+    returns for every one of the 50 episodes)."""
+    from .conftest import rl_pool
+
+    task = os.path.join(os.path.dirname(RESULTS), "halfcheetah-v5")
+    with open(os.path.join(task, "rescore.json")) as fh:
+        committed = json.load(fh)["returns"]
+    out = json.loads(rl_pool("evaluate", os.path.join(task, "best.npz"), "--episodes", 3, "--json", check=0).stdout)
+    assert out["returns"] == committed[:3]

@@ -38,6 +38,29 @@ def test_versions_names_what_decides_a_result():
     assert v["python"] == ".".join(map(str, sys.version_info[:3]))
 
 
+@pytest.mark.skipif(versions.platform.machine().lower() not in ("x86_64", "amd64"), reason="x86-64 only")
+def test_members_get_the_portable_simd_level_unless_told_otherwise():
+    from rl_pool import threads
+
+    env = threads.cap_threads({"XLA_FLAGS": "--xla_dump_to=/tmp/x"})
+    assert env["NPY_DISABLE_CPU_FEATURES"].split()[0] == "X86_V4" and env["OPENBLAS_CORETYPE"] == "Haswell"
+    assert env["XLA_FLAGS"].split() == ["--xla_dump_to=/tmp/x", "--xla_cpu_multi_thread_eigen=false",
+                                        "--xla_cpu_max_isa=AVX2"]
+    assert threads.cap_threads(dict(env)) == env  # applying it twice changes nothing
+    assert versions.simd(env) == "x86-64-v3"
+    native = threads.cap_threads({"RL_POOL_NATIVE_SIMD": "1"})
+    assert not set(threads.PORTABLE_SIMD) & set(native) and "max_isa" not in native["XLA_FLAGS"]
+    assert versions.simd(native) == "native"
+    own = threads.cap_threads({"OPENBLAS_CORETYPE": "SkylakeX"})  # a user's own choice is kept
+    assert own["OPENBLAS_CORETYPE"] == "SkylakeX" and versions.simd(own) == "custom"
+    # what a member process really runs with: numpy's dispatch stops at x86-64-v3
+    code = ("from numpy._core._multiarray_umath import __cpu_features__ as f; "
+            "print(int(any(f.get(k) for k in ('X86_V4', 'AVX512_SKX', 'AVX512_ICL'))))")
+    out = subprocess.run([sys.executable, "-c", code], env=threads.capped_environ(), capture_output=True,
+                         text=True, check=True).stdout
+    assert out.strip() == "0"
+
+
 def test_status_shows_the_versions_recorded_in_pool_json(tmp_path):
     paths, _ = make_pool(tmp_path / "p")
     doc = json.loads(open(paths.pool_json).read())
