@@ -1,5 +1,5 @@
 """Benchmarks that print figures (not timed tests):
-``python -m rl_pool.bench {throughput,scaling,evaluate,protocol}``.
+``python -m rl_pool.bench {throughput,scaling,evaluate,protocol,signing,simd}``.
 
 All figures of one run come from the same machine at the same time; compare
 them as ratios, since absolute times on a shared machine are noisy.
@@ -22,7 +22,7 @@ import tempfile
 import time
 
 from . import fsutil
-from .threads import cap_threads, capped_environ
+from .threads import PORTABLE_SIMD, cap_threads, capped_environ
 
 
 def _plain_loop(env_id: str, steps: int, unwrapped: bool, constant: bool = False) -> float:
@@ -50,37 +50,48 @@ def _plain_loop(env_id: str, steps: int, unwrapped: bool, constant: bool = False
     return steps / (time.perf_counter() - t0)
 
 
-def throughput(args) -> None:
-    """One member's training throughput vs the environment's own cost, interleaved in one run;
-    with ``--policy mlp`` the linear member is measured in the same rounds, for the ratio."""
+def _member_setup(env_id: str, kind: str, hidden: str) -> dict:
+    """A member ready to train (its first iteration done: JIT compiled, envs made)."""
     from . import envs, learner, trainer
     from .config import PoolConfig
     from .member import make_initial
 
     learner.enable_compilation_cache()
+    cfg = PoolConfig(env=env_id, policy=kind, hidden=hidden).validate()
+    agent, cfg = make_initial(cfg)
+    env_list = [envs.make(cfg.env)[0] for _ in range(max(cfg.batch_episodes, cfg.eval_episodes))]
+    t0 = time.perf_counter()
+    first = trainer.train(agent, env_list, cfg, 0.1, 0, 1)
+    return {"cfg": cfg, "agent": first.agent, "envs": env_list, "rates": [],
+            "cold": first.steps / (time.perf_counter() - t0)}
+
+
+def _member_rate(su: dict, steps: int, iteration: int) -> float:
+    """Training steps per second of the member in ``su`` over at least ``steps`` env steps."""
+    from . import trainer
+
+    done = secs = 0.0
+    while done < steps:
+        r = trainer.train(su["agent"], su["envs"], su["cfg"], 0.1, 0, iteration)
+        su["agent"] = r.agent
+        done += r.steps
+        secs += r.seconds
+    return done / secs
+
+
+def throughput(args) -> None:
+    """One member's training throughput vs the environment's own cost, interleaved in one run;
+    with ``--policy mlp`` the linear member is measured in the same rounds, for the ratio."""
+
     kinds = ["linear"] + (["mlp"] if args.policy == "mlp" else [])
-    setups = {}
-    for kind in kinds:
-        cfg = PoolConfig(env=args.env, policy=kind, hidden=args.hidden).validate()
-        agent, cfg = make_initial(cfg)
-        env_list = [envs.make(cfg.env)[0] for _ in range(max(cfg.batch_episodes, cfg.eval_episodes))]
-        t0 = time.perf_counter()
-        first = trainer.train(agent, env_list, cfg, 0.1, 0, 1)
-        setups[kind] = {"cfg": cfg, "agent": first.agent, "envs": env_list, "rates": [],
-                        "cold": first.steps / (time.perf_counter() - t0)}
+    setups = {kind: _member_setup(args.env, kind, args.hidden) for kind in kinds}
     plain, raw, bare = [], [], []
     for rep in range(args.repeats):
         plain.append(_plain_loop(args.env, args.steps, unwrapped=False))
         raw.append(_plain_loop(args.env, args.steps, unwrapped=True))
         bare.append(_plain_loop(args.env, args.steps, unwrapped=True, constant=True))
         for su in setups.values():
-            steps = secs = 0.0
-            while steps < args.steps:
-                r = trainer.train(su["agent"], su["envs"], su["cfg"], 0.1, 0, 2 + rep)
-                su["agent"] = r.agent
-                steps += r.steps
-                secs += r.seconds
-            su["rates"].append(steps / secs)
+            su["rates"].append(_member_rate(su, args.steps, 2 + rep))
     p, u, z = (statistics.median(x) for x in (plain, raw, bare))
     lin = setups["linear"]
     m = statistics.median(lin["rates"])
@@ -105,6 +116,39 @@ def throughput(args) -> None:
         print(f"  one {mlp['cfg'].spec.describe()} member's training {mm:9.0f} steps/s")
         print(f"  first iteration incl. JIT compile               {mlp['cold']:9.0f} steps/s")
         print(f"  ratio mlp member / linear member                {mm / m:9.2f}   (target >= 0.8)")
+
+
+def simd(args) -> None:
+    """One member's training throughput with rl-pool's portable SIMD level (x86-64-v3, the default)
+    and with all of the CPU (``RL_POOL_NATIVE_SIMD=1``): each measured in a fresh process (the
+    level is fixed when numpy loads), the two alternating, per env and policy."""
+    base = {k: v for k, v in os.environ.items() if k not in PORTABLE_SIMD and k != "RL_POOL_NATIVE_SIMD"}
+    base["XLA_FLAGS"] = " ".join(f for f in base.get("XLA_FLAGS", "").split() if "xla_cpu_max_isa" not in f)
+    modes = {"x86-64-v3": cap_threads(dict(base)), "native": cap_threads(base | {"RL_POOL_NATIVE_SIMD": "1"})}
+    print(f"one member's training steps/s, median of {args.repeats} fresh processes each, alternating; "
+          f"{args.steps} steps each after a warm-up iteration")
+    print(f"  {'env':16} {'policy':10} {'x86-64-v3':>10} {'native':>10} {'v3 / native':>12}")
+    for case in args.cases.split(","):
+        env_id, _, kind = case.partition(":")
+        rates = {m: [] for m in modes}
+        for _ in range(args.repeats):
+            for mode, environ in modes.items():
+                out = subprocess.run([sys.executable, "-m", "rl_pool.bench", "_rate", env_id, kind or "linear",
+                                      args.hidden, str(args.steps)], env=environ, capture_output=True, text=True,
+                                     check=True).stdout
+                got = json.loads(out.strip().splitlines()[-1])
+                if got["simd"] != mode:
+                    raise RuntimeError(f"the {mode} child ran with {got['simd']}")
+                rates[mode].append(got["rate"])
+        v3, nat = (statistics.median(rates[m]) for m in modes)
+        print(f"  {env_id:16} {kind or 'linear':10} {v3:10.0f} {nat:10.0f} {v3 / nat:12.2f}", flush=True)
+
+
+def _rate(args) -> None:
+    from .versions import simd as simd_level
+
+    su = _member_setup(args.env, args.kind, args.hidden)
+    print(json.dumps({"rate": _member_rate(su, args.steps, 2), "simd": simd_level(os.environ)}))
 
 
 def _replay_reference(su: dict, repeats: int) -> tuple[float, float]:
@@ -521,6 +565,19 @@ def main(argv=None) -> None:
                          "iteration, one more evaluation episode for three members (all in pools of up to 3)")
     pr.add_argument("--json", action="store_true", help="also print the rows as one JSON list")
     pr.set_defaults(func=protocol)
+    sm = sub.add_parser("simd", help="member throughput with the portable SIMD level vs all of the CPU")
+    sm.add_argument("--cases", default="Swimmer-v5:linear,HalfCheetah-v5:linear,HalfCheetah-v5:mlp",
+                    help="ENV:POLICY,... (default Swimmer linear, HalfCheetah linear and mlp)")
+    sm.add_argument("--hidden", default="64,64")
+    sm.add_argument("--steps", type=int, default=40000)
+    sm.add_argument("--repeats", type=int, default=3)
+    sm.set_defaults(func=simd)
+    r = sub.add_parser("_rate")  # internal: one member's training rate in this process
+    r.add_argument("env")
+    r.add_argument("kind")
+    r.add_argument("hidden")
+    r.add_argument("steps", type=int)
+    r.set_defaults(func=_rate)
     m = sub.add_parser("_member")  # internal: one member under the filesystem-call counter
     m.add_argument("out")
     m.add_argument("rest", nargs=argparse.REMAINDER)
