@@ -13,8 +13,8 @@ from .errors import UsageError
 PRESETS: dict[str, dict] = {
     "swimmer": {"env": "Swimmer-v5", "learning_rates": [0.01, 0.1]},
     # HalfCheetah: Ant's and Reacher's MLP started sharp. The linear policy (0.01/0.1) re-scored
-    # 3560 / 2800 / 1920 on seeds 0 / 1 / 2 after 20 minutes; this recipe 3668 on seed 0 and 4041
-    # on seed 1 after 10 minutes (results/halfcheetah-v5/, screening/ for the linear runs).
+    # 3560 / 2800 / 1920 on seeds 0 / 1 / 2 after 20 minutes; this recipe 3668 / 2816 / 3405
+    # (results/halfcheetah-v5/, screening/ for the other seeds and the linear runs).
     "halfcheetah": {"env": "HalfCheetah-v5", "policy": "mlp", "hidden": "64,64", "init_shape": 20.0,
                     "learning_rates": [0.001, 0.003]},
     # Hopper (like Walker2d and Ant) pays 1 per step for staying alive: subtracted in training (as in
