@@ -207,7 +207,7 @@ class Agent:
         directory fits the shape the meta implies, so a small hostile file
         cannot make the reader allocate gigabytes.
         """
-        if not data.startswith(ZIP_MAGIC):
+        if bytes(data[:4]) != ZIP_MAGIC:
             # Checked first so that numpy's reply to a non-zip file (a pickle, with advice on
             # loading it unsafely) never reaches the user, and np.load only ever sees a zip.
             raise AgentFileError(f"{source}: not an rl-pool agent file (an .npz is a zip archive; "

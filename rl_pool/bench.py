@@ -22,7 +22,7 @@ import tempfile
 import time
 
 from . import fsutil
-from .threads import PORTABLE_SIMD, cap_threads, capped_environ
+from .threads import PORTABLE_SIMD, cap_threads, capped_environ, cpu_runs_v3
 
 
 def _plain_loop(env_id: str, steps: int, unwrapped: bool, constant: bool = False) -> float:
@@ -82,7 +82,6 @@ def _member_rate(su: dict, steps: int, iteration: int) -> float:
 def throughput(args) -> None:
     """One member's training throughput vs the environment's own cost, interleaved in one run;
     with ``--policy mlp`` the linear member is measured in the same rounds, for the ratio."""
-
     kinds = ["linear"] + (["mlp"] if args.policy == "mlp" else [])
     setups = {kind: _member_setup(args.env, kind, args.hidden) for kind in kinds}
     plain, raw, bare = [], [], []
@@ -122,6 +121,8 @@ def simd(args) -> None:
     """One member's training throughput with rl-pool's portable SIMD level (x86-64-v3, the default)
     and with all of the CPU (``RL_POOL_NATIVE_SIMD=1``): each measured in a fresh process (the
     level is fixed when numpy loads), the two alternating, per env and policy."""
+    if not cpu_runs_v3():
+        sys.exit("bench simd: this CPU does not run x86-64-v3 code (or is not x86-64): nothing to compare")
     base = {k: v for k, v in os.environ.items() if k not in PORTABLE_SIMD and k != "RL_POOL_NATIVE_SIMD"}
     base["XLA_FLAGS"] = " ".join(f for f in base.get("XLA_FLAGS", "").split() if "xla_cpu_max_isa" not in f)
     modes = {"x86-64-v3": cap_threads(dict(base)), "native": cap_threads(base | {"RL_POOL_NATIVE_SIMD": "1"})}
@@ -133,10 +134,11 @@ def simd(args) -> None:
         rates = {m: [] for m in modes}
         for _ in range(args.repeats):
             for mode, environ in modes.items():
-                out = subprocess.run([sys.executable, "-m", "rl_pool.bench", "_rate", env_id, kind or "linear",
-                                      args.hidden, str(args.steps)], env=environ, capture_output=True, text=True,
-                                     check=True).stdout
-                got = json.loads(out.strip().splitlines()[-1])
+                proc = subprocess.run([sys.executable, "-m", "rl_pool.bench", "_rate", env_id, kind or "linear",
+                                       args.hidden, str(args.steps)], env=environ, capture_output=True, text=True)
+                if proc.returncode:
+                    sys.exit(f"bench simd: the {mode} child failed:\n{proc.stderr[-2000:]}")
+                got = json.loads(proc.stdout.strip().splitlines()[-1])
                 if got["simd"] != mode:
                     raise RuntimeError(f"the {mode} child ran with {got['simd']}")
                 rates[mode].append(got["rate"])

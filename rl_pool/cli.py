@@ -306,18 +306,20 @@ def _float_list(text: str) -> list[float]:
 def main(argv=None) -> int:
     cap_threads()  # before numpy or jax is imported anywhere in this process
     os.environ.setdefault("MUJOCO_GL", "egl")
-    from .errors import Stopped, UsageError
+    from .errors import Stopped, UsageError, drop_output
 
     args = build_parser().parse_args(argv)
     try:
-        return args.func(args)
+        code = args.func(args)
+        sys.stdout.flush()  # here, where a reader that has gone can be told apart from an error
+        return code
     except UsageError as exc:
         sys.stderr.write(f"rl-pool: error: {exc}\n")
         return 2
     except BrokenPipeError:
-        # The reader left (`rl-pool status DIR | head`): not an error. Before OSError, which it is
-        # one of; stdout goes to /dev/null so the interpreter's last flush cannot fail again.
-        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        # The reader of our output left (`rl-pool status DIR | head`): not an error. Caught before
+        # OSError, which it is one of.
+        drop_output(sys.stdout)
         return 0
     except OSError as exc:
         # a path the user gave that cannot be written or read (no such directory, permissions, full disk)

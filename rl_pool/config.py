@@ -10,6 +10,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
+import re
 from dataclasses import MISSING, asdict, dataclass, field, fields
 
 from .errors import UsageError
@@ -67,11 +68,12 @@ class PoolConfig:
         """The policy this pool trains (:class:`rl_pool.policy.PolicySpec`)."""
         from .policy import PolicySpec
 
-        try:
-            hidden = tuple(int(h) for h in self.hidden.split(",")) if self.policy == "mlp" else ()
-        except ValueError:
-            raise ValueError(f"hidden sizes must be comma-separated integers such as 64,64, got {self.hidden!r}") \
-                from None
+        if self.policy != "mlp":
+            hidden = ()
+        elif re.fullmatch(r"\d+(,\d+)*", self.hidden):
+            hidden = tuple(int(h) for h in self.hidden.split(","))
+        else:
+            raise ValueError(f"hidden sizes must be comma-separated integers such as 64,64, got {self.hidden!r}")
         return PolicySpec(self.policy, hidden, self.link)
 
     @property

@@ -1,5 +1,7 @@
 """Errors that mean "bad input": the CLI prints them as one line and exits 2."""
 
+import os
+
 
 class UsageError(Exception):
     """Bad arguments, a bad environment, or a pool directory that does not fit."""
@@ -76,3 +78,19 @@ class SignalLatch:
 
         for s, h in old.items():
             signal.signal(s, h)
+
+
+def drop_output(stream) -> None:
+    """Point ``stream`` (stdout or stderr) at /dev/null once its reader has gone (a closed pipe),
+    so that nothing written later, nor the interpreter's last flush, fails again (Python would
+    print "Exception ignored ... BrokenPipeError" and exit 120)."""
+    try:
+        fd = os.open(os.devnull, os.O_WRONLY)
+    except OSError:
+        return
+    try:
+        os.dup2(fd, stream.fileno())
+    except (OSError, ValueError, AttributeError):
+        pass  # a stream without a descriptor of its own
+    finally:
+        os.close(fd)

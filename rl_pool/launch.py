@@ -20,7 +20,7 @@ import time
 
 from . import fsutil, pool, progress, status
 from .config import MemberConfig
-from .errors import SignalLatch, UsageError
+from .errors import SignalLatch, UsageError, drop_output
 from .threads import capped_environ
 
 DEFAULT_RATIO = 0.1  # the first member's learning rate relative to the others'
@@ -113,9 +113,7 @@ def _say(line: str, stream=None) -> None:
     try:
         print(line, file=stream, flush=True)
     except BrokenPipeError:
-        # nothing more reaches it; /dev/null in its place keeps the interpreter's last flush quiet
-        with contextlib.suppress(OSError, ValueError):
-            os.dup2(os.open(os.devnull, os.O_WRONLY), stream.fileno())
+        drop_output(stream)
     except ValueError:  # closed
         pass
 

@@ -11,16 +11,16 @@ stdout is a pipe or a file (logs, SLURM output), so logs stay readable.
 
 from __future__ import annotations
 
-import contextlib
 import itertools
 import os
+import select
 import statistics
 import sys
 import time
 from dataclasses import dataclass, field
 
 from . import pool, status
-from .errors import SignalLatch, UsageError
+from .errors import SignalLatch, UsageError, drop_output
 
 #: Heartbeat states of a member that is running.
 ACTIVE = ("starting", "training", "evaluating", "waiting")
@@ -345,14 +345,24 @@ class Display:
             self.stream.flush()
         except BrokenPipeError:
             # The reader has gone (`... | head`). A launcher goes on watching its members; a
-            # watcher (`status --watch`) stops. /dev/null takes the stream's place so that the
-            # interpreter's last flush does not fail again.
+            # watcher (`status --watch`) stops.
             self.closed = True
-            with contextlib.suppress(OSError, ValueError, AttributeError):
-                os.dup2(os.open(os.devnull, os.O_WRONLY), self.stream.fileno())
+            drop_output(self.stream)
         except ValueError:  # a closed stream
             self.closed = True
         self._printed_snap = snap
+
+    def reader_gone(self) -> bool:
+        """Whether nothing written can reach a reader any more: a write failed, or the stream is a
+        pipe whose reader has closed it (seen without writing: poll's POLLERR)."""
+        if not self.closed:
+            try:
+                poller = select.poll()
+                poller.register(self.stream.fileno(), select.POLLOUT)
+                self.closed = any(ev & select.POLLERR for _, ev in poller.poll(0))
+            except (OSError, ValueError, AttributeError):
+                pass  # no descriptor, or no poll on this platform: the next failed write tells
+        return self.closed
 
     def close(self) -> None:
         if self.live is not None:
@@ -415,7 +425,7 @@ def watch(pool_dir: str, interval: float | None = None, recent: int = 5, stream=
     try:
         with Display(stream, interval=interval if interval is not None else 10.0, live=is_live) as d:
             try:
-                while not d.closed:  # a reader that left (`--watch | head`) ends the watch
+                while not d.reader_gone():  # a reader that left (`--watch | head`) ends the watch
                     d.update(tracker.poll())
                     stop.check()
                     time.sleep(period)

@@ -13,8 +13,9 @@ numpy's dispatch and XLA's code generation at x86-64-v3 (AVX2 and FMA, which
 x86 machines of the last decade have) and pinning OpenBLAS to its AVX2
 ("Haswell") kernels makes every such CPU compute the same bits (measured: 40
 of 40 HalfCheetah iterations made on an AVX2 machine replayed exactly on an
-AVX-512 one; README, Reproducing). ``RL_POOL_NATIVE_SIMD=1`` lets them use all
-of the CPU; a value of your own for any of these variables is kept.
+AVX-512 one; README, "The same numbers on another machine"). ``RL_POOL_NATIVE_SIMD=1``
+lets them use all of the CPU; a value of your own for any of these variables is
+kept; a CPU without AVX2 runs natively.
 
 All of this only takes effect if it is in the environment *before* numpy or
 jax is imported, so this module imports nothing heavy and entry points call
@@ -23,6 +24,7 @@ jax is imported, so this module imports nothing heavy and entry points call
 
 from __future__ import annotations
 
+import functools
 import os
 import platform
 
@@ -51,15 +53,41 @@ XLA_MAX_ISA = "--xla_cpu_max_isa=AVX2"
 VARIABLES = (*THREAD_CAPS, *PORTABLE_SIMD, "JAX_PLATFORMS")
 
 
+#: What x86-64-v3 code needs of a CPU, as /proc/cpuinfo names it.
+V3_FLAGS = frozenset({"avx", "avx2", "fma", "f16c", "bmi1", "bmi2", "movbe"})
+
+
+@functools.lru_cache(maxsize=1)
+def cpu_runs_v3() -> bool:
+    """Whether this CPU runs x86-64-v3 code (AVX2, FMA, ...): read from /proc/cpuinfo (Linux); False
+    where it cannot be read or the machine is not x86-64. Forcing AVX2 kernels on a CPU without AVX2
+    would stop the process with an illegal instruction."""
+    if platform.machine().lower() not in ("x86_64", "amd64"):
+        return False
+    try:
+        with open("/proc/cpuinfo", encoding="ascii", errors="replace") as fh:  # not a pool file
+            for line in fh:
+                if line.startswith("flags"):
+                    return set(line.partition(":")[2].split()) >= V3_FLAGS
+    except OSError:
+        pass
+    return False
+
+
+def native_requested(environ) -> bool:
+    """``RL_POOL_NATIVE_SIMD`` set to 1, true, yes or on."""
+    return environ.get("RL_POOL_NATIVE_SIMD", "").strip().lower() in ("1", "true", "yes", "on")
+
+
 def portable_simd(environ) -> bool:
-    """Whether processes started with ``environ`` cap numpy and XLA at x86-64-v3 (x86-64 only)."""
-    return (platform.machine().lower() in ("x86_64", "amd64")
-            and environ.get("RL_POOL_NATIVE_SIMD", "0") in ("", "0"))
+    """Whether processes started with ``environ`` hold numpy, OpenBLAS and XLA to x86-64-v3 code:
+    on x86-64 CPUs that run it, unless ``RL_POOL_NATIVE_SIMD`` asks for all of the CPU."""
+    return cpu_runs_v3() and not native_requested(environ)
 
 
 def cap_threads(environ: dict | None = None) -> dict:
-    """Put the one-thread caps and, on x86-64, the portable SIMD level into ``environ``
-    (default: this process's).
+    """Put the one-thread caps and, where :func:`portable_simd`, the portable SIMD level into
+    ``environ`` (default: this process's).
 
     Values the user already set are kept, except ``XLA_FLAGS`` which is
     extended rather than replaced. Returns the mapping it changed.

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import os
 import platform
+import sys
 from importlib import metadata
 
 from . import threads
@@ -31,16 +32,32 @@ def versions() -> dict[str, str | None]:
 
 
 def simd(environ) -> str:
-    """``x86-64-v3`` (rl-pool's portable level), ``native`` (all the CPU has), ``custom`` (values
-    of the user's own), or the machine (not x86-64)."""
-    if platform.machine().lower() not in ("x86_64", "amd64"):
-        return platform.machine().lower() or "unknown"
+    """``x86-64-v3`` (rl-pool's portable level), ``native`` (all the CPU has), ``custom`` (values of
+    the user's own, or numpy loaded before they were set), ``below-x86-64-v3`` (a CPU without AVX2,
+    run natively) or the machine (not x86-64)."""
+    machine = platform.machine().lower()
+    if machine not in ("x86_64", "amd64"):
+        return machine or "unknown"
+    if not threads.cpu_runs_v3():
+        return "below-x86-64-v3"
     xla = environ.get("XLA_FLAGS", "").split()
     if all(environ.get(k) == v for k, v in threads.PORTABLE_SIMD.items()) and threads.XLA_MAX_ISA in xla:
-        return "x86-64-v3"
+        return "custom" if _numpy_dispatches_avx512() else "x86-64-v3"
     if not any(environ.get(k) for k in threads.PORTABLE_SIMD) and not any("xla_cpu_max_isa" in f for f in xla):
         return "native"
     return "custom"
+
+
+def _numpy_dispatches_avx512() -> bool:
+    """Whether numpy, if this process has loaded it, runs its AVX-512 kernels (the environment is
+    read when numpy loads: set later, it changes nothing in this process)."""
+    if "numpy" not in sys.modules:
+        return False
+    try:
+        from numpy._core._multiarray_umath import __cpu_features__ as features
+    except ImportError:  # numpy 1.x
+        from numpy.core._multiarray_umath import __cpu_features__ as features
+    return any(features.get(k) for k in ("X86_V4", "AVX512_SKX", "AVX512_ICL", "AVX512_SPR"))
 
 
 def differences(recorded: dict, current: dict | None = None) -> dict[str, tuple]:

@@ -82,23 +82,30 @@ def test_status_csv_history(single_pool, tmp_path):
     assert rows[0]["member0_learning_rate"] == "0.1"
 
 
-@pytest.mark.parametrize("fmt", [[], ["--json"], ["--watch", "--interval", "0.1"]])
-def test_status_into_a_closed_pipe_exits_quietly(single_pool, fmt):
+@pytest.mark.parametrize("fmt, when", [([], "before"), (["--json"], "before"),
+                                       (["--watch", "--interval", "0.1"], "before"),
+                                       (["--watch", "--interval", "0.1"], "after the first line")])
+def test_status_into_a_closed_pipe_exits_quietly(single_pool, fmt, when):
     """`rl-pool status DIR | head` where the reader has gone: no traceback, no error line; a
-    watcher ends instead of following the pool for nobody."""
+    watcher ends instead of following the pool for nobody, also when it has nothing new to write
+    (the pool here is finished). Python's own buffering is left on, as in a user's shell."""
     import subprocess
     import sys
 
     from .conftest import ROOT
 
+    env = {k: v for k, v in os.environ.items() if k != "PYTHONUNBUFFERED"}
     r, w = os.pipe()
-    os.close(r)  # the reader is gone before the command writes a byte
-    try:
-        proc = subprocess.run([sys.executable, "-m", "rl_pool", "status", str(single_pool), *fmt],
-                              stdout=w, stderr=subprocess.PIPE, text=True, timeout=60, cwd=ROOT)
-    finally:
-        os.close(w)
-    assert proc.stderr == "" and proc.returncode == 0
+    if when == "before":
+        os.close(r)  # the reader is gone before the command writes a byte
+    proc = subprocess.Popen([sys.executable, "-m", "rl_pool", "status", str(single_pool), *fmt],
+                            stdout=w, stderr=subprocess.PIPE, text=True, cwd=ROOT, env=env)
+    os.close(w)
+    if when != "before":
+        with os.fdopen(r, "rb") as reader:
+            assert reader.readline()  # `| head -1`: one line, then the reader leaves
+    _, err = proc.communicate(timeout=30)
+    assert err == "" and proc.returncode == 0
 
 
 def test_rerun_on_finished_pool_changes_nothing_and_larger_target_continues(tmp_path):

@@ -3,11 +3,10 @@
 import csv
 import json
 import os
-import platform
 
 import pytest
 
-from rl_pool import Agent
+from rl_pool import Agent, threads
 from rl_pool.evaluate import evaluate_bytes
 
 RESULTS = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "results", "swimmer-v5")
@@ -31,7 +30,20 @@ def test_committed_history_matches_best():
     assert int(top["iteration"]) == best["iteration"] and float(top["eval_return"]) == best["eval_return"]
 
 
-@pytest.mark.skipif(platform.machine().lower() not in ("x86_64", "amd64"), reason="the portable level is x86-64's")
+HALFCHEETAH = os.path.join(os.path.dirname(RESULTS), "halfcheetah-v5")
+
+
+def _versions_as_committed(task: str) -> bool:
+    from rl_pool import versions
+
+    with open(os.path.join(task, "versions.txt")) as fh:
+        made = dict(ln.split(None, 1) for ln in fh.read().split("\n") if ln.strip())
+    now = versions.versions()
+    return all(now.get(k) == v.strip() for k, v in made.items())
+
+
+@pytest.mark.skipif(not threads.cpu_runs_v3(), reason="the portable level needs an x86-64-v3 CPU")
+@pytest.mark.skipif(not _versions_as_committed(HALFCHEETAH), reason="installed versions differ from the lock")
 def test_committed_re_score_replays_bit_for_bit_here():
     """results/halfcheetah-v5/rescore.json was made on a machine without AVX-512. With numpy, OpenBLAS
     and XLA held to x86-64-v3 code (rl_pool.threads), the real CLI gives the same returns to the
@@ -39,8 +51,8 @@ def test_committed_re_score_replays_bit_for_bit_here():
     returns for every one of the 50 episodes)."""
     from .conftest import rl_pool
 
-    task = os.path.join(os.path.dirname(RESULTS), "halfcheetah-v5")
-    with open(os.path.join(task, "rescore.json")) as fh:
+    with open(os.path.join(HALFCHEETAH, "rescore.json")) as fh:
         committed = json.load(fh)["returns"]
-    out = json.loads(rl_pool("evaluate", os.path.join(task, "best.npz"), "--episodes", 3, "--json", check=0).stdout)
-    assert out["returns"] == committed[:3]
+    env = {k: v for k, v in os.environ.items() if k not in (*threads.VARIABLES, "RL_POOL_NATIVE_SIMD")}
+    out = rl_pool("evaluate", os.path.join(HALFCHEETAH, "best.npz"), "--episodes", 3, "--json", check=0, env=env)
+    assert json.loads(out.stdout)["returns"] == committed[:3]

@@ -38,7 +38,7 @@ def test_versions_names_what_decides_a_result():
     assert v["python"] == ".".join(map(str, sys.version_info[:3]))
 
 
-@pytest.mark.skipif(versions.platform.machine().lower() not in ("x86_64", "amd64"), reason="x86-64 only")
+@pytest.mark.skipif(not versions.threads.cpu_runs_v3(), reason="the portable level needs an x86-64-v3 CPU")
 def test_members_get_the_portable_simd_level_unless_told_otherwise():
     from rl_pool import threads
 
@@ -48,17 +48,22 @@ def test_members_get_the_portable_simd_level_unless_told_otherwise():
                                         "--xla_cpu_max_isa=AVX2"]
     assert threads.cap_threads(dict(env)) == env  # applying it twice changes nothing
     assert versions.simd(env) == "x86-64-v3"
-    native = threads.cap_threads({"RL_POOL_NATIVE_SIMD": "1"})
-    assert not set(threads.PORTABLE_SIMD) & set(native) and "max_isa" not in native["XLA_FLAGS"]
-    assert versions.simd(native) == "native"
+    for yes in ("1", "true", "YES"):
+        native = threads.cap_threads({"RL_POOL_NATIVE_SIMD": yes})
+        assert not set(threads.PORTABLE_SIMD) & set(native) and "max_isa" not in native["XLA_FLAGS"]
+        assert versions.simd(native) == "native"
+    assert threads.cap_threads({"RL_POOL_NATIVE_SIMD": "0"})["OPENBLAS_CORETYPE"] == "Haswell"
     own = threads.cap_threads({"OPENBLAS_CORETYPE": "SkylakeX"})  # a user's own choice is kept
     assert own["OPENBLAS_CORETYPE"] == "SkylakeX" and versions.simd(own) == "custom"
-    # what a member process really runs with: numpy's dispatch stops at x86-64-v3
-    code = ("from numpy._core._multiarray_umath import __cpu_features__ as f; "
+    # What a process started like a member really runs: numpy's dispatch stops at x86-64-v3 (on a
+    # CPU with AVX-512 it would use it otherwise) and OpenBLAS says it took its Haswell kernels.
+    code = ("import numpy as np; from numpy._core._multiarray_umath import __cpu_features__ as f; "
+            "np.ones((8, 8)) @ np.ones((8, 8)); "
             "print(int(any(f.get(k) for k in ('X86_V4', 'AVX512_SKX', 'AVX512_ICL'))))")
-    out = subprocess.run([sys.executable, "-c", code], env=threads.capped_environ(), capture_output=True,
-                         text=True, check=True).stdout
-    assert out.strip() == "0"
+    clean = {k: v for k, v in os.environ.items() if k not in (*threads.VARIABLES, "RL_POOL_NATIVE_SIMD")}
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True,
+                          env=threads.cap_threads(clean | {"OPENBLAS_VERBOSE": "2"}))
+    assert proc.stdout.strip() == "0" and "Core: Haswell" in proc.stderr, proc.stderr
 
 
 def test_status_shows_the_versions_recorded_in_pool_json(tmp_path):
