@@ -76,7 +76,7 @@ def test_evaluate_refuses_non_agent_files(tmp_path):
     f = tmp_path / "x.npz"
     f.write_bytes(b"not a zip")
     proc = rl_pool("evaluate", f)
-    assert proc.returncode == 2 and "unreadable agent" in proc.stderr
+    assert proc.returncode == 2 and "not an rl-pool agent file" in proc.stderr
     proc = rl_pool("evaluate", tmp_path / "missing.npz")
     assert proc.returncode == 2 and "no agent file" in proc.stderr
 
