@@ -124,9 +124,9 @@ def test_pool_with_members_on_two_mounts_makes_one_decision_per_iteration(seawee
     mounts = {0: a, 1: b, 2: a}
     procs = [spawn("train", "--pool-dir", mounts[m], "--pool-size", 3, "--member", m, "--iterations", iters,
                    *SHORT, "--heartbeat-timeout", 300, "--barrier-timeout", 300, "--quiet") for m in (0, 1, 2)]
-    for p in procs:
+    for m, p in enumerate(procs):
         _, err = p.communicate(timeout=300)
-        assert p.returncode == 0, err
+        assert p.returncode == 0, f"member {m}: {err}\n{_log_tail(mounts[m], m)}"
     for i in range(iters + 1):
         rel = f"iterations/{i:06d}/selected.json"
         paths = [os.path.join(d, rel) for d in (a, b)]
@@ -143,6 +143,15 @@ def test_pool_with_members_on_two_mounts_makes_one_decision_per_iteration(seawee
                 assert dep["parent_sha256"] == prev["agent_sha256"], (i, m)
     for d in (a, b):
         assert claim.read_once(os.path.join(d, "pool.json")) == open(os.path.join(d, "pool.json"), "rb").read()
+
+
+def _log_tail(root, m: int) -> str:
+    """The end of member ``m``'s log (a ``--quiet`` member's traceback is there, not on stderr)."""
+    try:
+        with open(os.path.join(root, "logs", f"member-{m:03d}.log"), "rb") as fh:
+            return fh.read()[-3000:].decode(errors="replace")
+    except OSError as exc:
+        return f"(no log: {exc})"
 
 
 def _wait_for(path, pred, timeout=120.0):
