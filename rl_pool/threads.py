@@ -57,12 +57,16 @@ VARIABLES = (*THREAD_CAPS, *PORTABLE_SIMD, "JAX_PLATFORMS")
 V3_FLAGS = frozenset({"avx", "avx2", "fma", "f16c", "bmi1", "bmi2", "movbe"})
 
 
+def is_x86_64() -> bool:
+    return platform.machine().lower() in ("x86_64", "amd64")
+
+
 @functools.lru_cache(maxsize=1)
 def cpu_runs_v3() -> bool:
     """Whether this CPU runs x86-64-v3 code (AVX2, FMA, ...): read from /proc/cpuinfo (Linux); False
     where it cannot be read or the machine is not x86-64. Forcing AVX2 kernels on a CPU without AVX2
     would stop the process with an illegal instruction."""
-    if platform.machine().lower() not in ("x86_64", "amd64"):
+    if not is_x86_64():
         return False
     try:
         with open("/proc/cpuinfo", encoding="ascii", errors="replace") as fh:  # not a pool file

@@ -35,9 +35,8 @@ def simd(environ) -> str:
     """``x86-64-v3`` (rl-pool's portable level), ``native`` (all the CPU has), ``custom`` (values of
     the user's own, or numpy loaded before they were set), ``below-x86-64-v3`` (a CPU without AVX2,
     run natively) or the machine (not x86-64)."""
-    machine = platform.machine().lower()
-    if machine not in ("x86_64", "amd64"):
-        return machine or "unknown"
+    if not threads.is_x86_64():
+        return platform.machine().lower() or "unknown"
     if not threads.cpu_runs_v3():
         return "below-x86-64-v3"
     xla = environ.get("XLA_FLAGS", "").split()
