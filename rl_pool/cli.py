@@ -163,6 +163,15 @@ def cmd_evaluate(args) -> int:
     return 0
 
 
+def cmd_pick(args) -> int:
+    from . import pick
+
+    res = pick.pick(args.pool_dir, top=args.top, episodes=args.episodes, seed=args.seed, workers=args.workers,
+                    mode=args.mode, out=args.out)
+    print(json.dumps(res) if args.json else pick.format_text(res))
+    return 0
+
+
 def cmd_replay(args) -> int:
     from . import replay
 
@@ -248,6 +257,22 @@ def build_parser() -> argparse.ArgumentParser:
                     help="a custom evaluation worker (subclass of rl_pool.evaluate.EvalWorker)")
     ev.add_argument("--json", action="store_true")
     ev.set_defaults(func=cmd_evaluate)
+
+    pk = sub.add_parser("pick", help="choose a pool's agent on held-out episodes (best.npz is partly the luck "
+                                     "of its iteration's episodes)")
+    pk.add_argument("pool_dir")
+    pk.add_argument("--top", type=int, default=20,
+                    help="candidates: this many distinct selected agents by evaluation return (0: all), and "
+                         "the last selected agent (default 20)")
+    pk.add_argument("--episodes", type=int, default=20, help="held-out episodes, the same for every candidate")
+    pk.add_argument("--seed", type=_seed, default=2_000_000,
+                    help="first held-out episode's reset seed (default 2000000: not evaluate's 1000000 on)")
+    pk.add_argument("--workers", type=int, default=1, help="worker processes (spawned, one math thread each)")
+    pk.add_argument("--mode", choices=("mean", "sample"), default="mean", help="actions: Beta mean or samples")
+    pk.add_argument("--out", default=None, metavar="FILE.npz",
+                    help="where the pick goes (default POOL/picked.npz), with FILE.json beside it")
+    pk.add_argument("--json", action="store_true")
+    pk.set_defaults(func=cmd_pick)
 
     rp = sub.add_parser("replay", help="render an agent offscreen to a GIF or MP4")
     rp.add_argument("target", help="a pool directory (its best.npz) or an agent .npz")

@@ -8,6 +8,7 @@ process builds its environment once and reuses it for every episode it runs.
 
 from __future__ import annotations
 
+import contextlib
 import importlib
 import math
 import multiprocessing as mp
@@ -89,6 +90,23 @@ class EvalWorker:
         return float(self.evaluate(self._env, self._agent, seed))
 
 
+@contextlib.contextmanager
+def capped_children():
+    """While open, processes spawned from here inherit the one-thread caps and the portable SIMD
+    level (:mod:`rl_pool.threads`) through their environment, before they import numpy; this
+    process's environment is restored afterwards (a library caller's settings stay theirs)."""
+    saved = {k: os.environ.get(k) for k in VARIABLES}
+    cap_threads()
+    try:
+        yield
+    finally:
+        for k, v in saved.items():
+            if v is None:
+                os.environ.pop(k, None)
+            else:
+                os.environ[k] = v
+
+
 _WORKER: EvalWorker | None = None
 
 
@@ -128,18 +146,8 @@ def evaluate_bytes(agent_bytes: bytes, episodes: int, workers: int = 1, seed: in
     if workers <= 1:
         scores = [worker(s) for s in seeds]
     else:
-        ctx = mp.get_context("spawn")
-        saved = {k: os.environ.get(k) for k in VARIABLES}
-        cap_threads()  # children inherit these at spawn, before they import numpy
-        try:
-            with ctx.Pool(workers, initializer=_init, initargs=(worker,)) as p:
-                scores = p.map(_run, seeds, chunksize=1)
-        finally:
-            for k, v in saved.items():
-                if v is None:
-                    os.environ.pop(k, None)
-                else:
-                    os.environ[k] = v
+        with capped_children(), mp.get_context("spawn").Pool(workers, initializer=_init, initargs=(worker,)) as p:
+            scores = p.map(_run, seeds, chunksize=1)
     secs = time.perf_counter() - t0
     mean = sum(scores) / len(scores)
     std = math.sqrt(sum((s - mean) ** 2 for s in scores) / len(scores))

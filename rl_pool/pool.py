@@ -756,8 +756,18 @@ def update_best(paths: Paths, selection: dict | None) -> bool:
             (best["eval_return"], -best.get("iteration", 0)) >= (ret, -selection["iteration"]):
         return False
     data = paths.read_bytes(paths.resolve(selection["agent"]))
-    for target in (paths.best_npz, paths.best_json):
-        # A rename replaces a FIFO, a link or a file, not a directory: clear one off the name.
+    make_room(paths, paths.best_npz, paths.best_json)
+    fsutil.atomic_write(paths.best_npz, data)
+    fsutil.write_json(paths.best_json, paths.sign({
+        "iteration": selection["iteration"], "member": selection["member"], "winner": selection.get("winner"),
+        "eval_return": ret, "agent": selection["agent"], "agent_sha256": sha256(data)}))
+    return True
+
+
+def make_room(paths: Paths, *targets: str) -> None:
+    """Before replacing pool files such as ``best.npz``: a rename replaces a FIFO, a link or a
+    file, not a directory, so a directory at a target's name (never a member's) is set aside."""
+    for target in targets:
         try:
             st = os.lstat(target)
         except OSError:
@@ -765,11 +775,6 @@ def update_best(paths: Paths, selection: dict | None) -> bool:
         if stat.S_ISDIR(st.st_mode):
             log.warning("removing the directory at %s", target)
             fsutil.set_aside(target, (st.st_dev, st.st_ino), root=paths.root)
-    fsutil.atomic_write(paths.best_npz, data)
-    fsutil.write_json(paths.best_json, paths.sign({
-        "iteration": selection["iteration"], "member": selection["member"], "winner": selection.get("winner"),
-        "eval_return": ret, "agent": selection["agent"], "agent_sha256": sha256(data)}))
-    return True
 
 
 def _remove_matching(d: str, doomed) -> int:

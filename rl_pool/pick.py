@@ -1,0 +1,168 @@
+"""``rl-pool pick``: choose a pool's agent on held-out episodes.
+
+``best.npz`` is the selected agent with the highest mean evaluation return on
+its own iteration's episodes. Those episodes change every iteration, so over
+hundreds of iterations the highest mean is partly the luck of an easy draw:
+on Reacher the return depends mostly on where the target lands: in the last
+300 iterations of results/reacher-v5/ (the parent kept in 234 of them) the
+selected agent scored from -7.1 to -3.1 on its iteration's 20 episodes, and
+``best.npz`` (-3.07 on its own) re-scores at -5.9 on 50 fresh ones. ``pick`` runs candidate agents on one shared
+set of held-out episodes and keeps the one with the highest mean return, so
+every candidate meets the same episodes and an easy draw favours none of them.
+
+Candidates are the distinct agents the pool selected (by hash), ranked by the
+best evaluation return each reached in the pool: the first ``top`` of them (0:
+all), and the last selected agent. Held-out episodes use reset seeds ``seed +
+k`` (default from 2,000,000: not the pool's seeds, which are drawn from the
+whole 32-bit range, nor ``evaluate``'s default 1,000,000 on), so a later
+``rl-pool evaluate`` of the pick scores it on episodes the pick never saw.
+Episodes run as in ``evaluate`` (the same worker code): a candidate's mean here
+equals ``rl-pool evaluate AGENT --episodes E --seed SEED``.
+
+The pool is only read, apart from the pick itself: ``POOL/picked.npz`` and
+``POOL/picked.json`` (``--out`` elsewhere).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import multiprocessing as mp
+import os
+import time
+
+from . import fsutil, pool
+from .errors import UsageError
+from .evaluate import EvalWorker, capped_children
+
+DEFAULT_SEED = 2_000_000
+
+
+def candidates(paths: pool.Paths, top: int) -> tuple[list[dict], int]:
+    """``(candidates, distinct agents selected)``: the ``top`` distinct selected agents by the best
+    evaluation return each reached (0: all; ties: the earlier iteration), then the last selected
+    agent if it is not among them. Each: ``agent`` (path in the pool), ``agent_sha256``,
+    ``iteration`` (where it reached that return), ``eval_return``, ``last`` (the last selected)."""
+    seen: dict[str, dict] = {}
+    last = None
+    for i in pool.iterations_on_disk(paths):
+        sel = pool.read_selected(paths, i)
+        if sel is None or not isinstance(sel.get("agent"), str) or not isinstance(sel.get("agent_sha256"), str):
+            continue
+        ret = sel.get("eval_return")
+        ret = float(ret) if isinstance(ret, (int, float)) and not isinstance(ret, bool) else None
+        c = seen.get(sel["agent_sha256"])
+        if c is None:
+            c = seen[sel["agent_sha256"]] = {"agent": sel["agent"], "agent_sha256": sel["agent_sha256"],
+                                             "iteration": i, "eval_return": ret}
+        elif ret is not None and (c["eval_return"] is None or ret > c["eval_return"]):
+            c.update(iteration=i, eval_return=ret)
+        last = c
+    ranked = sorted(seen.values(), key=lambda c: (c["eval_return"] is None, -(c["eval_return"] or 0.0),
+                                                   c["iteration"]))
+    chosen = ranked if top == 0 else ranked[:top]
+    if last is not None and last not in chosen:
+        chosen.append(last)
+    return [c | {"last": c is last} for c in chosen], len(seen)
+
+
+# Worker processes keep one environment per (task, kwargs, episode length) for every candidate they run.
+_ENVS: dict[str, object] = {}
+
+
+class _SharedEnvWorker(EvalWorker):
+    def make_env(self, agent):
+        key = json.dumps([agent.meta.env, agent.meta.env_kwargs, agent.meta.max_episode_steps], sort_keys=True)
+        if key not in _ENVS:
+            _ENVS[key] = super().make_env(agent)
+        return _ENVS[key]
+
+
+def _returns(task: tuple[bytes, list[int], str]) -> list[float]:
+    agent_bytes, seeds, mode = task
+    worker = _SharedEnvWorker(agent_bytes, mode=mode)
+    return [worker(s) for s in seeds]
+
+
+def _run_all(agents: list[bytes], seeds: list[int], mode: str, workers: int) -> list[list[float]]:
+    """Every agent's returns on ``seeds``, over ``workers`` spawned processes (one math thread each)."""
+    if workers <= 1:
+        return [_returns((a, seeds, mode)) for a in agents]
+    # Few candidates: split their episodes too, so every worker has work.
+    parts = max(1, min(len(seeds), math.ceil(2 * workers / len(agents))))
+    size = math.ceil(len(seeds) / parts)
+    tasks = [(a, seeds[k:k + size], mode) for a in agents for k in range(0, len(seeds), size)]
+    with capped_children(), mp.get_context("spawn").Pool(workers) as p:
+        out = p.map(_returns, tasks, chunksize=1)
+    per = len(range(0, len(seeds), size))
+    return [[r for part in out[j * per:(j + 1) * per] for r in part] for j in range(len(agents))]
+
+
+def pick(pool_dir: str, top: int = 20, episodes: int = 20, seed: int = DEFAULT_SEED, workers: int = 1,
+         mode: str = "mean", out: str | None = None) -> dict:
+    if top < 0 or episodes < 1 or workers < 1:
+        raise UsageError("--top must be >= 0, --episodes and --workers positive")
+    paths = pool.Paths(pool_dir)
+    pool.read_config(paths, readonly=True)  # a foreign directory is refused here
+    verified = pool.attach_key(paths, required=False)
+    found, distinct = candidates(paths, top)
+    t0 = time.perf_counter()
+    ok, skipped = [], []
+    for c in found:
+        try:
+            data = paths.read_bytes(paths.resolve(c["agent"]))
+        except (OSError, ValueError) as exc:
+            skipped.append(c | {"reason": str(getattr(exc, "strerror", None) or exc)})
+            continue
+        if pool.sha256(data) != c["agent_sha256"]:
+            skipped.append(c | {"reason": "does not match the hash its selection recorded"})
+            continue
+        ok.append((c, data))
+    if not ok:
+        raise UsageError(f"pool {pool_dir} has no selected agent to pick from"
+                         + (f" ({len(skipped)} unreadable)" if skipped else ""))
+    seeds = [seed + k for k in range(episodes)]
+    results = _run_all([data for _, data in ok], seeds, mode, workers)
+    rows = []
+    for (c, _), rets in zip(ok, results, strict=True):
+        mean = math.fsum(rets) / len(rets)
+        std = math.sqrt(math.fsum((r - mean) ** 2 for r in rets) / len(rets))
+        rows.append(c | {"mean_return": mean, "std_return": std, "returns": rets})
+    # the highest held-out mean; ties go to the higher-ranked candidate (listed first)
+    best = max(range(len(rows)), key=lambda j: (rows[j]["mean_return"], -j))
+    chosen = rows[best]
+    data = ok[best][1]
+    npz = out or os.path.join(paths.root, "picked.npz")
+    meta = os.path.splitext(npz)[0] + ".json"
+    summary = {"pool_dir": str(paths.root), "verified": verified, "episodes": episodes, "seed": seed,
+               "mode": mode, "top": top, "distinct_agents": distinct, "seconds": time.perf_counter() - t0,
+               "picked": {k: chosen[k] for k in ("iteration", "agent", "agent_sha256", "eval_return",
+                                                 "mean_return", "std_return")},
+               "out": npz}
+    if out is None:
+        pool.make_room(paths, npz, meta)
+    fsutil.atomic_write(npz, data)
+    fsutil.write_json(meta, summary | {"candidates": [{k: r[k] for k in ("iteration", "agent_sha256", "eval_return",
+                                                                          "mean_return", "std_return")}
+                                                      for r in rows]})
+    return summary | {"candidates": rows, "skipped": skipped}
+
+
+def format_text(res: dict) -> str:
+    n = len(res["candidates"])
+    which = "all" if res["top"] == 0 else f"the top {res['top']} by evaluation return, and the last selected"
+    lines = [f"{n} of {res['distinct_agents']} selected agents ({which}) on {res['episodes']} held-out episodes "
+             f"(reset seeds {res['seed']}..{res['seed'] + res['episodes'] - 1}, {res['mode']} actions) "
+             f"in {res['seconds']:.1f}s" + ("" if res["verified"] else "; pool files unverified (no key)"),
+             f"{'iteration':>9} {'eval return':>12} {'held-out mean':>14} {'std':>8}"]
+    for r in res["candidates"]:
+        ev = "—" if r["eval_return"] is None else f"{r['eval_return']:.2f}"
+        mark = " <- picked" if r["agent_sha256"] == res["picked"]["agent_sha256"] else ""
+        mark += " (last selected)" if r.get("last") else ""
+        lines.append(f"{r['iteration']:>9} {ev:>12} {r['mean_return']:>14.2f} {r['std_return']:>8.2f}{mark}")
+    for s in res["skipped"]:
+        lines.append(f"skipped iteration {s['iteration']}'s agent {s['agent']}: {s['reason']}")
+    p = res["picked"]
+    lines.append(f"picked: the agent of iteration {p['iteration']} (held-out mean {p['mean_return']:.2f}), "
+                 f"written to {res['out']}")
+    return "\n".join(lines)

@@ -1,0 +1,127 @@
+"""``rl-pool pick``: candidates from a real pool, every one on the same held-out episodes."""
+
+import hashlib
+import json
+import os
+
+import numpy as np
+import pytest
+
+from rl_pool import Agent
+
+from .conftest import SHORT, rl_pool
+from .test_evaluate import _reference_episode
+
+ITERS = 5
+
+
+@pytest.fixture(scope="module")
+def pool_dir(tmp_path_factory):
+    # branches only: a new agent nearly every iteration, so there is something to choose from
+    d = tmp_path_factory.mktemp("pick") / "pool"
+    rl_pool("launch", "--pool-dir", d, "--pool-size", 2, "--learning-rates", "0.03,0.3", "--iterations", ITERS,
+            "--selection", "branches", *SHORT, "--quiet", check=0)
+    return d
+
+
+def _selections(d):
+    """Each iteration's selection as written, read straight from the files."""
+    out = []
+    for i in range(ITERS + 1):
+        doc = json.loads((d / "iterations" / f"{i:06d}" / "selected.json").read_bytes())
+        out.append(doc)
+    return out
+
+
+def _sha(path) -> str:
+    return hashlib.sha256(open(path, "rb").read()).hexdigest()
+
+
+def test_every_selected_agent_on_the_same_held_out_episodes_and_the_highest_mean_is_picked(pool_dir, tmp_path):
+    out = tmp_path / "mine.npz"
+    res = json.loads(rl_pool("pick", pool_dir, "--top", 0, "--episodes", 3, "--out", out, "--json", check=0).stdout)
+    sels = _selections(pool_dir)
+    assert {c["agent_sha256"] for c in res["candidates"]} == {s["agent_sha256"] for s in sels}
+    assert res["distinct_agents"] == len(res["candidates"]) >= 3
+    # ranked by the best evaluation return each agent reached (the initial agent has none: last)
+    best_ret = {}
+    for s in sels:
+        if s.get("eval_return") is not None:
+            best_ret[s["agent_sha256"]] = max(best_ret.get(s["agent_sha256"], -np.inf), s["eval_return"])
+    ranked = [c["agent_sha256"] for c in res["candidates"] if c["eval_return"] is not None]
+    assert ranked == sorted(best_ret, key=lambda h: -best_ret[h])
+    assert res["candidates"][-1]["eval_return"] is None
+    # each candidate's episodes equal an independent loop on the wrapped env, held-out seeds 2,000,000 + k
+    for c in res["candidates"]:
+        agent = Agent.load(pool_dir / c["agent"])
+        ref = [_reference_episode(agent, 2_000_000 + k)[0] for k in range(3)]
+        np.testing.assert_allclose(c["returns"], ref, rtol=1e-12)
+    means = [c["mean_return"] for c in res["candidates"]]
+    top = res["candidates"][int(np.argmax(means))]
+    assert res["picked"]["agent_sha256"] == top["agent_sha256"] == _sha(out)
+    written = json.loads((tmp_path / "mine.json").read_bytes())
+    assert written["picked"] == res["picked"] and len(written["candidates"]) == len(means)
+    assert not (pool_dir / "picked.npz").exists()  # --out: the pool is only read
+
+
+def test_top_k_with_workers_gives_the_same_numbers_and_adds_the_last_selected(pool_dir):
+    full = json.loads(rl_pool("pick", pool_dir, "--top", 0, "--episodes", 3, "--json", check=0).stdout)
+    two = json.loads(rl_pool("pick", pool_dir, "--top", 2, "--episodes", 3, "--workers", 2, "--json",
+                             check=0).stdout)
+    last = _selections(pool_dir)[-1]["agent_sha256"]
+    expect = [c["agent_sha256"] for c in full["candidates"][:2]]
+    if last not in expect:
+        expect.append(last)
+    assert [c["agent_sha256"] for c in two["candidates"]] == expect
+    by_sha = {c["agent_sha256"]: c["returns"] for c in full["candidates"]}
+    for c in two["candidates"]:
+        assert c["returns"] == by_sha[c["agent_sha256"]]  # the worker split changes no number
+    assert two["candidates"][-1]["last"] or last in expect[:2]
+    # written into the pool by default, and `evaluate` on the pick gives its held-out mean back
+    assert _sha(pool_dir / "picked.npz") == two["picked"]["agent_sha256"]
+    again = json.loads(rl_pool("evaluate", pool_dir / "picked.npz", "--episodes", 3, "--seed", 2_000_000, "--json",
+                               check=0).stdout)
+    assert again["mean_return"] == pytest.approx(two["picked"]["mean_return"], rel=1e-12)
+
+
+def test_unreadable_candidates_are_skipped_with_the_reason(pool_dir, tmp_path):
+    # a copy of the pool in which one selected agent is garbage and another is a FIFO (never read)
+    import shutil
+
+    d = tmp_path / "copy"
+    shutil.copytree(pool_dir, d)
+    sels = [s for s in _selections(d) if s.get("winner") == "branch"]
+    garbage, fifo = d / sels[0]["agent"], d / sels[-1]["agent"]
+    garbage.write_bytes(b"not an agent")
+    os.unlink(fifo)
+    os.mkfifo(fifo)
+    proc = rl_pool("pick", d, "--top", 0, "--episodes", 2, timeout=120, check=0)
+    assert f"skipped iteration {sels[0]['iteration']}'s agent {sels[0]['agent']}: does not match" in proc.stdout
+    assert f"skipped iteration {sels[-1]['iteration']}'s agent {sels[-1]['agent']}" in proc.stdout
+    picked = json.loads((d / "picked.json").read_bytes())["picked"]
+    assert picked["agent_sha256"] not in {sels[0]["agent_sha256"], sels[-1]["agent_sha256"]}
+
+
+def test_a_directory_at_the_pick_is_set_aside(pool_dir, tmp_path):
+    import shutil
+
+    d = tmp_path / "copy"
+    shutil.copytree(pool_dir, d)
+    (d / "picked.npz").unlink(missing_ok=True)  # an earlier test's pick
+    (d / "picked.npz").mkdir()
+    rl_pool("pick", d, "--top", 1, "--episodes", 1, check=0)
+    assert (d / "picked.npz").is_file() and Agent.load(d / "picked.npz") is not None
+
+
+@pytest.mark.parametrize("args, message", [
+    (["--top", "-1"], "--top must be >= 0"),
+    (["--episodes", "0"], "--episodes and --workers positive"),
+])
+def test_bad_arguments_get_one_line(pool_dir, args, message):
+    proc = rl_pool("pick", pool_dir, *args, check=2)
+    assert proc.stderr.count("\n") == 1 and message in proc.stderr and "Traceback" not in proc.stderr
+
+
+def test_not_a_pool_gets_one_line(tmp_path):
+    proc = rl_pool("pick", tmp_path, check=2)
+    assert proc.stderr.count("\n") == 1 and "Traceback" not in proc.stderr
