@@ -1,6 +1,8 @@
 #!/usr/bin/env bash
 # Export a finished (or stopped) pool into results/<task>/: history, plot, best agent, config,
-# versions and a fresh-episode re-score (50 episodes on seeds the pool never trained or evaluated on).
+# versions and a fresh-episode re-score (50 episodes on seeds the pool never trained or evaluated on),
+# of best.npz and of picked.npz (`rl-pool pick`: the top 20 selected agents and the last one on 20
+# held-out episodes, seeds 2000000+k; then re-scored on the same 50 episodes as best.npz).
 #   results/collect.sh POOL_DIR TASK "the command that made the pool"
 set -euo pipefail
 POOL="$1"; TASK="$2"; CMD="$3"
@@ -13,6 +15,8 @@ mkdir -p "$OUT"
 cp "$POOL/best.npz" "$OUT/best.npz"
 cp "$POOL/best.json" "$POOL/pool.json" "$OUT/"
 "$RL" evaluate "$OUT/best.npz" --episodes 50 --workers 2 --json > "$OUT/rescore.json"
+"$RL" pick "$POOL" --top 20 --episodes 20 --workers 2 --out "$OUT/picked.npz" > /dev/null
+"$RL" evaluate "$OUT/picked.npz" --episodes 50 --workers 2 --json > "$OUT/rescore-picked.json"
 "$HERE/.venv/bin/python" - "$OUT" <<'PY' > "$OUT/versions.txt"
 import platform, sys
 from importlib.metadata import version
@@ -29,6 +33,8 @@ rows = list(csv.DictReader(open(f"{out}/history.csv")))
 res = json.load(open(f"{out}/rescore.json"))
 pool = json.load(open(f"{out}/pool.json"))
 best = json.load(open(f"{out}/best.json"))
+picked = json.load(open(f"{out}/picked.json"))
+res_p = json.load(open(f"{out}/rescore-picked.json"))
 def at(minutes):
     b, steps = None, None
     for r in rows:
@@ -58,9 +64,16 @@ lines = [f"# {pool['env']}: {task}", "",
          f"{best['eval_return']:.1f}); re-scored on {res['episodes']} fresh episodes (reset seeds 1000000+k, "
          f"deterministic Beta mean): **{res['mean_return']:.1f} ± {res['std_return']:.1f}** "
          f"(min {min(res['returns']):.1f}, max {max(res['returns']):.1f}).", "",
+         f"`picked.npz` (`rl-pool pick --top 20 --episodes 20`: {len(picked['candidates'])} of the "
+         f"{picked['distinct_agents']} distinct selected agents on the same 20 held-out episodes, reset seeds "
+         f"{picked['seed']}+k) is the agent of iteration {picked['picked']['iteration']} (held-out mean "
+         f"{picked['picked']['mean_return']:.1f}); re-scored on the same 50 fresh episodes: "
+         f"**{res_p['mean_return']:.1f} ± {res_p['std_return']:.1f}** (min {min(res_p['returns']):.1f}, "
+         f"max {max(res_p['returns']):.1f}).", "",
          "Files: `history.csv` (per iteration: winner, returns, wall time, env steps), `progress.png`",
          "(`rl-pool plot`), `best.npz`/`best.json`, `pool.json` (the exact pool config and versions),",
-         "`rescore.json` (`rl-pool evaluate --episodes 50 --json`), `versions.txt`, `command.txt`."]
+         "`rescore.json` (`rl-pool evaluate --episodes 50 --json`), `picked.npz`/`picked.json` (`rl-pool pick`),",
+         "`rescore-picked.json`, `versions.txt`, `command.txt`."]
 open(f"{out}/README.md", "w").write("\n".join(lines) + "\n")
 PY
-echo "$OUT: $(python3 -c "import json,sys; d=json.load(open('$OUT/rescore.json')); print(f\"re-score {d['mean_return']:.1f} ± {d['std_return']:.1f} over {d['episodes']} episodes\")")"
+echo "$OUT: $(python3 -c "import json,sys; d=json.load(open('$OUT/rescore.json')); print(f\"re-score {d['mean_return']:.1f} ± {d['std_return']:.1f} over {d['episodes']} episodes\")"); picked: $(python3 -c "import json,sys; d=json.load(open('$OUT/rescore-picked.json')); print(f\"{d['mean_return']:.1f} ± {d['std_return']:.1f}\")")"
