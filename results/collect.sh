@@ -35,6 +35,8 @@ pool = json.load(open(f"{out}/pool.json"))
 best = json.load(open(f"{out}/best.json"))
 picked = json.load(open(f"{out}/picked.json"))
 res_p = json.load(open(f"{out}/rescore-picked.json"))
+def f(x):  # Reacher's returns are a few units: two decimals there
+    return f"{x:.2f}" if abs(x) < 100 else f"{x:.1f}"
 def at(minutes):
     b, steps = None, None
     for r in rows:
@@ -43,7 +45,7 @@ def at(minutes):
             if b is None or v > b:
                 b = v
             steps = int(r["env_steps"])
-    return ("—", "—") if b is None else (f"{b:.1f}", f"{steps / 1e6:.2f} M")
+    return ("—", "—") if b is None else (f(b), f"{steps / 1e6:.2f} M")
 end = float(rows[-1]["elapsed_seconds"])
 cols = [m for m in (5, 10, 20) if m * 60 <= end + 30]
 wins = {}
@@ -61,15 +63,15 @@ lines = [f"# {pool['env']}: {task}", "",
          f"The run was stopped after {end / 60:.1f} minutes ({len(rows)} iterations; winners: "
          + ", ".join(f"{k} {v}" for k, v in sorted(wins.items())) + ").",
          f"`best.npz` is the best selected agent (iteration {best['iteration']}, evaluation return "
-         f"{best['eval_return']:.1f}); re-scored on {res['episodes']} fresh episodes (reset seeds 1000000+k, "
-         f"deterministic Beta mean): **{res['mean_return']:.1f} ± {res['std_return']:.1f}** "
-         f"(min {min(res['returns']):.1f}, max {max(res['returns']):.1f}).", "",
+         f"{f(best['eval_return'])}); re-scored on {res['episodes']} fresh episodes (reset seeds 1000000+k, "
+         f"deterministic Beta mean): **{f(res['mean_return'])} ± {f(res['std_return'])}** "
+         f"(min {f(min(res['returns']))}, max {f(max(res['returns']))}).", "",
          f"`picked.npz` (`rl-pool pick --top 20 --episodes 20`: {len(picked['candidates'])} of the "
          f"{picked['distinct_agents']} distinct selected agents on the same 20 held-out episodes, reset seeds "
          f"{picked['seed']}+k) is the agent of iteration {picked['picked']['iteration']} (held-out mean "
-         f"{picked['picked']['mean_return']:.1f}); re-scored on the same 50 fresh episodes: "
-         f"**{res_p['mean_return']:.1f} ± {res_p['std_return']:.1f}** (min {min(res_p['returns']):.1f}, "
-         f"max {max(res_p['returns']):.1f}).", "",
+         f"{f(picked['picked']['mean_return'])}); re-scored on the same 50 fresh episodes: "
+         f"**{f(res_p['mean_return'])} ± {f(res_p['std_return'])}** (min {f(min(res_p['returns']))}, "
+         f"max {f(max(res_p['returns']))}).", "",
          "Files: `history.csv` (per iteration: winner, returns, wall time, env steps), `progress.png`",
          "(`rl-pool plot`), `best.npz`/`best.json`, `pool.json` (the exact pool config and versions),",
          "`rescore.json` (`rl-pool evaluate --episodes 50 --json`), `picked.npz`/`picked.json` (`rl-pool pick`),",
