@@ -994,8 +994,7 @@ def barrier(paths: Paths, i: int, cfg: PoolConfig, me: int, like: Agent, quorum:
     """Wait for iteration ``i``'s deposits, then select (or adopt the selection already made).
 
     A waiting member polls one name, the iteration's decision (a lookup, not a
-    listing; pauses back off from 1 ms to ``poll_max``, and stay at ``poll_max`` while
-    its last listing lacked two or more deposits), and lists the
+    listing; pauses back off from 1 ms to ``poll_max``), and lists the
     directory only right after its own deposit and then on a slow timer
     (:data:`LIST_FIRST` doubling to :data:`LIST_MAX` seconds). The member whose
     listing shows all ``pool_size`` deposits selects: normally the last
@@ -1032,10 +1031,6 @@ def barrier(paths: Paths, i: int, cfg: PoolConfig, me: int, like: Agent, quorum:
                     continue
                 listed = True
                 missing = sorted(set(range(cfg.pool_size)) - have)
-                if len(missing) > 1:
-                    # Two or more deposits to come: the decision is at least a member's work away, and
-                    # quick polls would only wake this process for nothing (16 members on 2 cores).
-                    delay = poll_max
                 if len(have) >= quorum:
                     why = [liveness.stale(m) for m in missing]
                     if all(why):
