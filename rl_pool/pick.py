@@ -32,7 +32,8 @@ import os
 import time
 
 from . import fsutil, pool
-from .errors import UsageError
+from .agent import Agent
+from .errors import AgentFileError, UsageError
 from .evaluate import EvalWorker, capped_children
 
 DEFAULT_SEED = 2_000_000
@@ -98,12 +99,26 @@ def _run_all(agents: list[bytes], seeds: list[int], mode: str, workers: int) -> 
     return [[r for part in out[j * per:(j + 1) * per] for r in part] for j in range(len(agents))]
 
 
+def _why_not_playable(data: bytes, source: str, cfg) -> str | None:
+    """None if ``data`` is an agent for the pool's task, else why not (checked here, so a bad
+    candidate is skipped rather than failing a worker process)."""
+    try:
+        meta = Agent.from_bytes(data, source=source).meta
+    except (AgentFileError, ValueError) as exc:
+        return str(exc).removeprefix(f"{source}: ")
+    if meta.env != cfg.env or meta.env_kwargs != cfg.env_kwargs \
+            or (cfg.max_episode_steps and meta.max_episode_steps != cfg.max_episode_steps):
+        return (f"an agent for {meta.env} {json.dumps(meta.env_kwargs)} ({meta.max_episode_steps} steps), "
+                f"not this pool's task")
+    return None
+
+
 def pick(pool_dir: str, top: int = 20, episodes: int = 20, seed: int = DEFAULT_SEED, workers: int = 1,
          mode: str = "mean", out: str | None = None) -> dict:
     if top < 0 or episodes < 1 or workers < 1:
         raise UsageError("--top must be >= 0, --episodes and --workers positive")
     paths = pool.Paths(pool_dir)
-    pool.read_config(paths, readonly=True)  # a foreign directory is refused here
+    cfg = pool.read_config(paths, readonly=True)  # a foreign directory is refused here
     verified = pool.attach_key(paths, required=False)
     found, distinct = candidates(paths, top)
     t0 = time.perf_counter()
@@ -116,6 +131,10 @@ def pick(pool_dir: str, top: int = 20, episodes: int = 20, seed: int = DEFAULT_S
             continue
         if pool.sha256(data) != c["agent_sha256"]:
             skipped.append(c | {"reason": "does not match the hash its selection recorded"})
+            continue
+        why = _why_not_playable(data, c["agent"], cfg)
+        if why:  # only an unverified read (no key) lets such a selection through
+            skipped.append(c | {"reason": why})
             continue
         ok.append((c, data))
     if not ok:

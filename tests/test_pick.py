@@ -3,6 +3,7 @@
 import hashlib
 import json
 import os
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -13,6 +14,7 @@ from .conftest import SHORT, rl_pool
 from .test_evaluate import _reference_episode
 
 ITERS = 5
+RESULTS = Path(__file__).resolve().parent.parent / "results"
 
 
 @pytest.fixture(scope="module")
@@ -100,6 +102,35 @@ def test_unreadable_candidates_are_skipped_with_the_reason(pool_dir, tmp_path):
     assert f"skipped iteration {sels[-1]['iteration']}'s agent {sels[-1]['agent']}" in proc.stdout
     picked = json.loads((d / "picked.json").read_bytes())["picked"]
     assert picked["agent_sha256"] not in {sels[0]["agent_sha256"], sels[-1]["agent_sha256"]}
+
+
+def test_forged_selections_read_without_the_key_are_skipped(pool_dir, tmp_path):
+    """Read without the pool's key, a selection is unverified: one that names garbage (with its
+    hash) or an agent for another task is skipped with the reason, not run."""
+    import shutil
+
+    from rl_pool import claim
+
+    d = tmp_path / "copy"
+    shutil.copytree(pool_dir, d)
+    foreign = d / "iterations" / "000001" / "foreign.npz"
+    shutil.copy(RESULTS / "hopper-v5" / "best.npz", foreign)
+    garbage = d / "iterations" / "000001" / "garbage.npz"
+    garbage.write_bytes(b"PK not an agent")
+    for i, agent in ((ITERS - 1, foreign), (ITERS, garbage)):
+        sel = d / "iterations" / f"{i:06d}" / "selected.json"
+        doc = json.loads(sel.read_bytes()) | {"agent": str(agent.relative_to(d)), "agent_sha256": _sha(agent),
+                                               "eval_return": 1e6}
+        shutil.rmtree(sel.parent / ".selected.json.once")
+        claim.create_once(sel, json.dumps(doc).encode())
+    env = {k: v for k, v in os.environ.items() if not k.startswith("RL_POOL_KEY")}
+    proc = rl_pool("pick", d, "--top", 0, "--episodes", 1, "--workers", 2, check=0,
+                   env=env | {"XDG_CONFIG_HOME": str(tmp_path / "no-key")})
+    assert "pool files unverified (no key)" in proc.stdout
+    assert f"skipped iteration {ITERS}'s agent iterations/000001/garbage.npz: not an rl-pool agent file" in proc.stdout
+    assert (f"skipped iteration {ITERS - 1}'s agent iterations/000001/foreign.npz: an agent for Hopper-v5"
+            in proc.stdout)
+    assert _sha(d / "picked.npz") not in {_sha(foreign), _sha(garbage)}
 
 
 def test_a_directory_at_the_pick_is_set_aside(pool_dir, tmp_path):
