@@ -183,12 +183,19 @@ def resolve_agent(target: str) -> tuple[str, bytes]:
     return path, data
 
 
+#: More episodes than this is a typo, not a job (a million Hopper episodes are a billion steps):
+#: refused rather than listing the seeds in memory.
+MAX_EPISODES = 1_000_000
+
+
 def evaluate_path(target: str, episodes: int = 10, workers: int = 1, seed: int = 1_000_000,
                   worker: str | None = None, mode: str = "mean") -> dict:
     from .errors import UsageError
 
     if episodes < 1 or workers < 1:
         raise UsageError("--episodes and --workers must be positive")
+    if episodes > MAX_EPISODES:
+        raise UsageError(f"--episodes must be at most {MAX_EPISODES}")
     cls = load_worker_class(worker)
     path, data = resolve_agent(target)
     return evaluate_bytes(data, episodes, workers, seed, cls, mode) | {"agent": path}

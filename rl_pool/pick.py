@@ -34,7 +34,7 @@ import time
 from . import fsutil, pool
 from .agent import Agent
 from .errors import AgentFileError, UsageError
-from .evaluate import EvalWorker, capped_children
+from .evaluate import MAX_EPISODES, EvalWorker, capped_children
 
 DEFAULT_SEED = 2_000_000
 
@@ -117,6 +117,8 @@ def pick(pool_dir: str, top: int = 20, episodes: int = 20, seed: int = DEFAULT_S
          mode: str = "mean", out: str | None = None) -> dict:
     if top < 0 or episodes < 1 or workers < 1:
         raise UsageError("--top must be >= 0, --episodes and --workers positive")
+    if episodes > MAX_EPISODES:
+        raise UsageError(f"--episodes must be at most {MAX_EPISODES}")
     paths = pool.Paths(pool_dir)
     cfg = pool.read_config(paths, readonly=True)  # a foreign directory is refused here
     verified = pool.attach_key(paths, required=False)

@@ -66,6 +66,7 @@ def test_custom_worker_class_pickles_under_spawn(trained):
     (["--worker", "os:path"], "not a subclass"),
     (["--worker", "no_such_module:X"], "cannot import"),
     (["--episodes", 0], "must be positive"),
+    (["--episodes", 10**10], "must be at most 1000000"),
 ])
 def test_evaluate_bad_input(trained, args, says):
     proc = rl_pool("evaluate", trained, *args)

@@ -147,6 +147,7 @@ def test_a_directory_at_the_pick_is_set_aside(pool_dir, tmp_path):
 @pytest.mark.parametrize("args, message", [
     (["--top", "-1"], "--top must be >= 0"),
     (["--episodes", "0"], "--episodes and --workers positive"),
+    (["--episodes", "10000000000"], "--episodes must be at most 1000000"),
 ])
 def test_bad_arguments_get_one_line(pool_dir, args, message):
     proc = rl_pool("pick", pool_dir, *args, check=2)
