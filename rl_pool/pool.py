@@ -692,20 +692,40 @@ def select(paths: Paths, i: int, cfg: PoolConfig, like: Agent, members: set[int]
                     "agent_sha256": best["agent_sha256"]}
     else:
         out |= keep_parent | {"winner": "carried", "carried_from": previous["iteration"]}
-    return _track_best(out, previous, cfg.revert_after)
+    return _track_best(out, previous, cfg.revert_after, cfg.best_score == "mean")
 
 
-def _track_best(out: dict, previous: dict, revert_after: int) -> dict:
+def _track_best(out: dict, previous: dict, revert_after: int, mean: bool = False) -> dict:
     """Carry the best selection so far (``best``, by score) and the iterations since it
-    (``since_best``) from ``previous`` to ``out``; revert to the best after ``revert_after`` of them."""
+    (``since_best``) from ``previous`` to ``out``; revert to the best after ``revert_after`` of them.
+
+    With ``mean`` (``--best-score mean``) the best ranks by ``mean_score``: the mean of its first
+    score and of every later re-score of it as the parent (``scores`` of them in all). A best
+    whose first score was the luck of its iteration's episodes sinks towards what it is worth, so
+    a later agent can take its place and a revert goes back to an agent that earned its rank.
+    ``score`` and ``eval_return`` stay the first ones. A new agent enters with one score; the
+    agent the pool keeps or reverts to is not a new one (its re-score is already counted).
+    """
     best = previous.get("best")
+    if not isinstance(best, dict):
+        best = None
+    parent = out.get("parent") or {}
+    if mean and best is not None and parent.get("agent_sha256") == best["agent_sha256"] \
+            and parent.get("score") is not None:
+        n = int(best.get("scores") or 1)
+        total = best.get("score_sum", best["score"]) + parent["score"]
+        best = best | {"scores": n + 1, "score_sum": total, "mean_score": total / (n + 1)}
     score = out.get("score")
-    if score is not None and (not isinstance(best, dict) or score > best["score"]):
+    rank = None if best is None else best.get("mean_score", best["score"]) if mean else best["score"]
+    if score is not None and (best is None or (score > rank and not (
+            mean and out.get("agent_sha256") == best["agent_sha256"]))):
         out["best"] = {"iteration": out["iteration"], "eval_return": out["eval_return"], "score": score,
                        "agent": out["agent"], "agent_sha256": out["agent_sha256"]}
+        if mean:
+            out["best"] |= {"scores": 1, "score_sum": score, "mean_score": score}
         out["since_best"] = 0
         return out
-    out["best"] = best if isinstance(best, dict) else None
+    out["best"] = best
     out["since_best"] = int(previous.get("since_best") or 0) + 1
     if revert_after and out["best"] is not None and out["since_best"] >= revert_after \
             and out["agent_sha256"] != best["agent_sha256"]:

@@ -483,6 +483,43 @@ def test_revert_to_the_best_after_k_iterations_without_improvement(tmp_path):
     assert sels[6]["best"]["iteration"] == 6
 
 
+@pytest.mark.parametrize("best_score", ["first", "mean"])
+def test_best_score_mean_lets_a_lucky_first_score_wear_off(tmp_path, best_score):
+    """With ``--best-score mean`` the best ranks by the mean of its first score and its re-scores
+    as the parent: iteration 1's agent scored 10 once, then 7 twice as the parent (mean 8), so
+    iteration 3's 8.2 takes its place and the revert goes back to iteration 3's agent. By first
+    scores iteration 1's agent stays the best and the revert goes back to it."""
+    paths, cfg = make_pool(tmp_path / "p", pool_size=1, revert_after=3, best_score=best_score)
+    sels = {}
+    for i, (branch, parent) in enumerate([(10.0, 1.0), (6.0, 7.0), (8.2, 7.0), (5.0, 8.0), (7.0, 7.0),
+                                          (4.0, 5.0), (3.0, 7.9)], start=1):
+        _deposit(paths, i, 0, branch, seed=i, parent=parent)
+        sels[i] = _decide(paths, cfg, i, {0})
+    if best_score == "first":
+        assert [sels[i]["winner"] for i in range(1, 5)] == ["branch", "parent", "branch", "revert"]
+        assert [sels[i]["best"]["iteration"] for i in range(1, 5)] == [1, 1, 1, 1]
+        assert sels[4]["reverted_to"] == 1 and "mean_score" not in sels[4]["best"]
+        return
+    assert [sels[i]["winner"] for i in range(1, 8)] == ["branch", "parent", "branch", "parent", "branch", "revert",
+                                                        "parent"]
+    assert sels[2]["best"] == {"iteration": 1, "eval_return": 10.0, "score": 10.0, "scores": 2, "score_sum": 17.0,
+                               "mean_score": 8.5, "agent": sels[1]["agent"], "agent_sha256": sels[1]["agent_sha256"]}
+    assert (sels[3]["best"]["iteration"], sels[3]["best"]["scores"], sels[3]["since_best"]) == (3, 1, 0)
+    # the new best re-scored as the parent: 8.0, then 7.0; iteration 5's 7.0 ties the parent (a branch
+    # that ties wins) but not the best's mean
+    assert sels[4]["best"]["mean_score"] == pytest.approx(8.1)
+    assert sels[5]["best"]["mean_score"] == pytest.approx(23.2 / 3) and sels[5]["since_best"] == 2
+    assert (sels[6]["reverted_to"], sels[6]["eval_return"], sels[6]["since_best"]) == (3, 8.2, 0)
+    assert pool.load_selected_agent(paths, 6).to_bytes() == agent(3).to_bytes()
+    # reverted to, it is the parent again and its re-score counts
+    assert sels[7]["best"]["scores"] == 4 and sels[7]["best"]["mean_score"] == pytest.approx(31.1 / 4)
+
+
+def test_best_score_mean_needs_the_parent_rule(tmp_path):
+    with pytest.raises(UsageError, match="--best-score mean needs --selection parent"):
+        make_pool(tmp_path / "p", pool_size=1, selection="branches", best_score="mean")
+
+
 def test_with_a_reward_shift_selection_compares_the_training_objective(tmp_path):
     """Shifted pools train on r - c per step, so branches and parent compete on that score;
     eval_return keeps the env's own return."""
