@@ -62,9 +62,10 @@ class PoolConfig:
     revert_after: int = opt(0, "go back to the best selected agent after K iterations without a new best "
                                "(0: never)")
     best_score: str = opt("first", "what ranks the best selected agent (the one --revert-after goes back to): "
-                                   "its score in the iteration it was selected, or with --selection parent the "
-                                   "mean of that and every later re-score of it as the parent (a lucky first "
-                                   "score wears off)", ("first", "mean"), added=True)
+                                   "its score in the iteration it was selected, or the mean of that and every "
+                                   "later re-score of it as the parent (a lucky first score wears off; with "
+                                   "--selection branches a best is re-scored in the iteration after it became "
+                                   "the best or was reverted to)", ("first", "mean"), added=True)
     seed: int = opt(0, "root seed; every random draw derives from (seed, member, iteration)")
 
     @property
@@ -123,8 +124,6 @@ class PoolConfig:
             raise UsageError(f"--selection-margin must be a finite number >= 0, got {self.selection_margin}")
         if self.selection_margin and self.selection != "parent":
             raise UsageError("--selection-margin needs --selection parent (it is a margin over the parent)")
-        if self.best_score == "mean" and self.selection != "parent":
-            raise UsageError("--best-score mean needs --selection parent (the parent's re-scores are what it averages)")
         if self.revert_after < 0:
             raise UsageError(f"--revert-after must be >= 0, got {self.revert_after}")
         try:

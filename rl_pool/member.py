@@ -230,9 +230,10 @@ def _loop(paths: pool.Paths, cfg: PoolConfig, mc: MemberConfig, hb: pool.Heartbe
                 hb.update(state="evaluating")  # shown by the next periodic beat: one write less per iteration
                 ev = trainer.evaluate(tr.agent, env_list, cfg, i)
                 parent = {}
-                if cfg.selection == "parent" and pool.scores_parent(i, me, cfg.pool_size):
-                    # The parent competes on the same episodes; several members score it (three in
-                    # turn), so the selection does not depend on any one member's deposit being there.
+                if pool.rescores_parent(cfg, prev) and pool.scores_parent(i, me, cfg.pool_size):
+                    # The parent competes on the same episodes (or, with --best-score mean, a best
+                    # is re-scored); several members score it (three in turn), so the selection
+                    # does not depend on any one member's deposit being there.
                     pe = trainer.evaluate(start, env_list, cfg, i)
                     parent = {"parent_eval_return": pe.mean, "parent_eval_score": pe.score,
                               "parent_eval_returns": pe.returns, "parent_eval_lengths": pe.lengths,

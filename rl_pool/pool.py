@@ -534,6 +534,17 @@ def scores_parent(i: int, m: int, pool_size: int) -> bool:
     return offset % step == 0 and offset // step < PARENT_SCORERS
 
 
+def rescores_parent(cfg: PoolConfig, previous: dict) -> bool:
+    """Whether the members of the iteration after ``previous`` re-score its agent (the parent):
+    with ``--selection parent`` always (it competes); with ``--best-score mean`` and branches
+    only, when the parent is the best so far (just made the best, or reverted to), so its
+    re-score counts towards the best's mean without competing."""
+    if cfg.selection == "parent":
+        return True
+    best = previous.get("best")
+    return cfg.best_score == "mean" and isinstance(best, dict) and best.get("agent_sha256") == previous["agent_sha256"]
+
+
 def parent_report(docs: list[dict], parent_sha: str, shifted: bool = False) -> dict | None:
     """The deposit whose report of the parent's score counts: the lowest member's that names the
     right parent and gives a finite return (and, when ``shifted``, a finite shifted score).
@@ -642,9 +653,10 @@ def select(paths: Paths, i: int, cfg: PoolConfig, like: Agent, members: set[int]
 
     sha = previous["agent_sha256"]
     while True:
-        report = parent_report(docs, sha, shifted) if cfg.selection == "parent" else None
+        report = parent_report(docs, sha, shifted) if rescores_parent(cfg, previous) else None
+        competes = report is not None and cfg.selection == "parent"
         parent_eps = None
-        if report is not None and cfg.selection_margin:
+        if competes and cfg.selection_margin:
             # the lowest report of the parent with its episodes whole (all honest ones agree)
             report = parent_report([d for d in docs if parent_episodes(d)], sha, shifted) or report
             parent_eps = parent_episodes(report)
@@ -684,7 +696,7 @@ def select(paths: Paths, i: int, cfg: PoolConfig, like: Agent, members: set[int]
         else:  # with a margin, no branch cleared it: the parent stays
             top, _ = choose([(c["member"], c["score"]) for c in considered])
             best = next(c for c in considered if c["member"] == top)
-        if parent is not None and (not eligible or (parent_eps is None and parent[1] > best["score"])):
+        if competes and (not eligible or (parent_eps is None and parent[1] > best["score"])):
             out |= keep_parent | {"winner": "parent", "best_branch": {k: best[k] for k in keys}}
         else:
             out |= {"winner": "branch", "member": best["member"], "eval_return": best["eval_return"],

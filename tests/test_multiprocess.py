@@ -199,6 +199,37 @@ def test_in_a_larger_pool_three_members_in_turn_re_score_the_parent(tmp_path):
                                  else "branch")
 
 
+def test_best_score_mean_with_branches_re_scores_each_new_best_and_revert(tmp_path):
+    """Real members, branches only, ``--best-score mean``: they re-score the parent exactly in the
+    iterations after it became the best or was reverted to, and the best's mean is its first score
+    and those re-scores."""
+    d = tmp_path / "mean"
+    iters = 10
+    procs = [spawn("train", "--pool-dir", d, "--pool-size", 2, "--member", m, "--learning-rate", lr,
+                   "--iterations", iters, *SHORT, "--quiet", "--selection", "branches", "--revert-after", 2,
+                   "--best-score", "mean") for m, lr in enumerate((0.1, 1.0))]
+    for p in procs:
+        _, err = p.communicate(timeout=240)
+        assert p.returncode == 0, err
+    sels = [json.loads((d / f"iterations/{i:06d}/selected.json").read_text()) for i in range(iters + 1)]
+    scores = {}  # every score of each agent that was the best: first, then re-scores
+    for i in range(1, iters + 1):
+        prev, sel = sels[i - 1], sels[i]
+        docs = [json.loads((d / f"iterations/{i:06d}/member-{m:03d}.json").read_text()) for m in range(2)]
+        rescored = isinstance(prev.get("best"), dict) and prev["best"]["agent_sha256"] == prev["agent_sha256"]
+        assert [("parent_eval_return" in doc) for doc in docs] == [rescored] * 2
+        if rescored:
+            assert docs[0]["parent_eval_return"] == docs[1]["parent_eval_return"] == sel["parent"]["eval_return"]
+            scores[prev["agent_sha256"]].append(sel["parent"]["eval_return"])
+        assert sel["winner"] in ("branch", "revert")  # a re-score never competes
+        if sel["best"]["iteration"] == i:
+            scores[sel["agent_sha256"]] = [sel["eval_return"]]
+        mine = scores[sel["best"]["agent_sha256"]]
+        assert sel["best"]["scores"] == len(mine) and sel["best"]["mean_score"] == pytest.approx(np.mean(mine))
+    assert sum(len(v) - 1 for v in scores.values()) >= 1
+    assert any(sel["winner"] == "revert" for sel in sels[1:])
+
+
 def test_hostile_deposits_in_a_live_pool_are_skipped_and_never_run(tmp_path):
     import io
 

@@ -515,9 +515,29 @@ def test_best_score_mean_lets_a_lucky_first_score_wear_off(tmp_path, best_score)
     assert sels[7]["best"]["scores"] == 4 and sels[7]["best"]["mean_score"] == pytest.approx(31.1 / 4)
 
 
-def test_best_score_mean_needs_the_parent_rule(tmp_path):
-    with pytest.raises(UsageError, match="--best-score mean needs --selection parent"):
-        make_pool(tmp_path / "p", pool_size=1, selection="branches", best_score="mean")
+def test_best_score_mean_with_branches_re_scores_only_a_best(tmp_path):
+    """Branches only: members re-score the parent when it is the best (just made the best, or
+    reverted to); the re-score counts towards the best's mean and never competes."""
+    paths, cfg = make_pool(tmp_path / "p", pool_size=1, selection="branches", revert_after=2, best_score="mean")
+    sels = {0: pool.read_selected(paths, 0)}
+    # (branch, the parent's re-score as reported; only a best's is read)
+    for i, (branch, parent) in enumerate([(10.0, 1.0), (6.0, 7.0), (8.6, 100.0), (5.0, 6.0), (7.0, 100.0),
+                                          (3.0, 8.0)], start=1):
+        _deposit(paths, i, 0, branch, seed=i, parent=parent)
+        sels[i] = _decide(paths, cfg, i, {0})
+    assert [pool.rescores_parent(cfg, sels[i]) for i in range(6)] == [False, True, False, True, False, True]
+    assert [sels[i]["winner"] for i in range(1, 7)] == ["branch", "branch", "branch", "branch", "revert", "branch"]
+    assert sels[2]["parent"]["eval_return"] == 7.0 and sels[2]["member"] == 0  # 7 > 6, yet no competition
+    assert (sels[2]["best"]["scores"], sels[2]["best"]["mean_score"]) == (2, 8.5)
+    assert sels[3]["parent"]["eval_return"] is None and sels[3]["best"]["iteration"] == 3  # 8.6 > 8.5
+    assert sels[4]["best"]["mean_score"] == pytest.approx(7.3)
+    assert sels[5]["reverted_to"] == 3  # 7.0 < 7.3, two iterations after the best
+    assert sels[6]["best"]["scores"] == 3 and sels[6]["best"]["mean_score"] == pytest.approx(22.6 / 3)
+    # the default ranks by first scores: no re-scores read with branches only
+    paths2, cfg2 = make_pool(tmp_path / "q", pool_size=1, selection="branches", revert_after=2)
+    _deposit(paths2, 1, 0, 10.0, seed=1, parent=1.0)
+    first = _decide(paths2, cfg2, 1, {0})
+    assert not pool.rescores_parent(cfg2, first) and "mean_score" not in first["best"]
 
 
 def test_with_a_reward_shift_selection_compares_the_training_objective(tmp_path):
