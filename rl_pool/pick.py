@@ -99,7 +99,7 @@ def _run_all(agents: list[bytes], seeds: list[int], mode: str, workers: int) -> 
     return [[r for part in out[j * per:(j + 1) * per] for r in part] for j in range(len(agents))]
 
 
-def _why_not_playable(data: bytes, source: str, cfg) -> str | None:
+def _why_not_playable(data: bytes, source: str, cfg, like=None) -> str | None:
     """None if ``data`` is an agent for the pool's task, else why not (checked here, so a bad
     candidate is skipped rather than failing a worker process)."""
     try:
@@ -110,6 +110,9 @@ def _why_not_playable(data: bytes, source: str, cfg) -> str | None:
             or (cfg.max_episode_steps and meta.max_episode_steps != cfg.max_episode_steps):
         return (f"an agent for {meta.env} {json.dumps(meta.env_kwargs)} ({meta.max_episode_steps} steps), "
                 f"not this pool's task")
+    if like is not None and (meta.obs_dim, meta.act_dim, tuple(meta.action_low), tuple(meta.action_high)) != \
+            (like.obs_dim, like.act_dim, tuple(like.action_low), tuple(like.action_high)):
+        return "its observation or action shapes or bounds differ from the pool's initial agent's"
     return None
 
 
@@ -123,6 +126,10 @@ def pick(pool_dir: str, top: int = 20, episodes: int = 20, seed: int = DEFAULT_S
     cfg = pool.read_config(paths, readonly=True)  # a foreign directory is refused here
     verified = pool.attach_key(paths, required=False)
     found, distinct = candidates(paths, top)
+    try:  # the pool's own agent description (the initial agent, a decided file)
+        like = pool.load_selected_agent(paths, 0).meta
+    except (OSError, ValueError, AgentFileError):
+        like = None
     t0 = time.perf_counter()
     ok, skipped = [], []
     for c in found:
@@ -134,7 +141,7 @@ def pick(pool_dir: str, top: int = 20, episodes: int = 20, seed: int = DEFAULT_S
         if pool.sha256(data) != c["agent_sha256"]:
             skipped.append(c | {"reason": "does not match the hash its selection recorded"})
             continue
-        why = _why_not_playable(data, c["agent"], cfg)
+        why = _why_not_playable(data, c["agent"], cfg, like)
         if why:  # only an unverified read (no key) lets such a selection through
             skipped.append(c | {"reason": why})
             continue

@@ -726,7 +726,8 @@ def _track_best(out: dict, previous: dict, revert_after: int, mean: bool = False
             and parent.get("score") is not None:
         n = int(best.get("scores") or 1)
         total = best.get("score_sum", best["score"]) + parent["score"]
-        best = best | {"scores": n + 1, "score_sum": total, "mean_score": total / (n + 1)}
+        if math.isfinite(total):  # two huge finite scores can sum to inf, which JSON cannot hold
+            best = best | {"scores": n + 1, "score_sum": total, "mean_score": total / (n + 1)}
     score = out.get("score")
     rank = None if best is None else best.get("mean_score", best["score"]) if mean else best["score"]
     if score is not None and (best is None or (score > rank and not (

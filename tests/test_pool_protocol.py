@@ -515,6 +515,16 @@ def test_best_score_mean_lets_a_lucky_first_score_wear_off(tmp_path, best_score)
     assert sels[7]["best"]["scores"] == 4 and sels[7]["best"]["mean_score"] == pytest.approx(31.1 / 4)
 
 
+def test_best_score_mean_ignores_a_re_score_whose_sum_is_not_finite():
+    prev = {"iteration": 5, "agent": "x", "agent_sha256": "b", "since_best": 1,
+            "best": {"iteration": 4, "eval_return": 1.0, "score": 1.7e308, "agent": "x", "agent_sha256": "b",
+                     "scores": 1, "score_sum": 1.7e308, "mean_score": 1.7e308}}
+    out = {"iteration": 6, "parent": {"agent_sha256": "b", "score": 1.7e308}, "score": 5.0, "eval_return": 5.0,
+           "agent": "y", "agent_sha256": "c", "winner": "branch", "member": 0}
+    sel = pool._track_best(out, prev, 0, mean=True)
+    assert sel["best"] == prev["best"] and fsutil.dumps(sel)  # still writable JSON
+
+
 def test_best_score_mean_with_branches_re_scores_only_a_best(tmp_path):
     """Branches only: members re-score the parent when it is the best (just made the best, or
     reverted to); the re-score counts towards the best's mean and never competes."""
