@@ -32,7 +32,6 @@ import os
 import time
 
 from . import fsutil, pool
-from .agent import Agent
 from .errors import AgentFileError, UsageError
 from .evaluate import MAX_EPISODES, EvalWorker, capped_children
 
@@ -99,20 +98,18 @@ def _run_all(agents: list[bytes], seeds: list[int], mode: str, workers: int) -> 
     return [[r for part in out[j * per:(j + 1) * per] for r in part] for j in range(len(agents))]
 
 
-def _why_not_playable(data: bytes, source: str, cfg, like=None) -> str | None:
+def _why_not_playable(data: bytes, digest: str, source: str, cfg, like=None) -> str | None:
     """None if ``data`` is an agent for the pool's task, else why not (checked here, so a bad
-    candidate is skipped rather than failing a worker process)."""
+    candidate is skipped rather than failing a worker process). ``like``: the initial agent's
+    description, which every agent of the pool shares (as :func:`rl_pool.pool.read_agent` checks);
+    without it, the pool's env."""
     try:
-        meta = Agent.from_bytes(data, source=source).meta
+        meta = pool.parse_agent(data, digest, source).meta
     except (AgentFileError, ValueError) as exc:
         return str(exc).removeprefix(f"{source}: ")
-    if meta.env != cfg.env or meta.env_kwargs != cfg.env_kwargs \
-            or (cfg.max_episode_steps and meta.max_episode_steps != cfg.max_episode_steps):
+    if meta != like if like is not None else (meta.env, meta.env_kwargs) != (cfg.env, cfg.env_kwargs):
         return (f"an agent for {meta.env} {json.dumps(meta.env_kwargs)} ({meta.max_episode_steps} steps), "
-                f"not this pool's task")
-    if like is not None and (meta.obs_dim, meta.act_dim, tuple(meta.action_low), tuple(meta.action_high)) != \
-            (like.obs_dim, like.act_dim, tuple(like.action_low), tuple(like.action_high)):
-        return "its observation or action shapes or bounds differ from the pool's initial agent's"
+                f"not this pool's task or policy shape")
     return None
 
 
@@ -141,7 +138,7 @@ def pick(pool_dir: str, top: int = 20, episodes: int = 20, seed: int = DEFAULT_S
         if pool.sha256(data) != c["agent_sha256"]:
             skipped.append(c | {"reason": "does not match the hash its selection recorded"})
             continue
-        why = _why_not_playable(data, c["agent"], cfg, like)
+        why = _why_not_playable(data, c["agent_sha256"], c["agent"], cfg, like)
         if why:  # only an unverified read (no key) lets such a selection through
             skipped.append(c | {"reason": why})
             continue
