@@ -38,9 +38,9 @@ def history(d):
     return out
 
 
-def run_pool(d, lrs=(0.003, 0.03), extra=("--lr-adapt", 2)):
+def run_pool(d, lrs=(0.003, 0.03), extra=("--lr-adapt", 2), iters=ITERS):
     procs = [spawn("train", "--pool-dir", d, "--pool-size", 2, "--member", m, "--learning-rate", lr,
-                   "--iterations", ITERS, *SHORT, "--quiet", *extra) for m, lr in enumerate(lrs)]
+                   "--iterations", iters, *SHORT, "--quiet", *extra) for m, lr in enumerate(lrs)]
     for p in procs:
         _, err = p.communicate(timeout=240)
         assert p.returncode == 0, err
