@@ -1,0 +1,35 @@
+"""Presets: every one names real options and makes a valid pool; explicit options win."""
+
+from dataclasses import fields
+
+import pytest
+
+from rl_pool import cli, presets
+from rl_pool.config import MemberConfig, PoolConfig
+
+POOL_FIELDS = {f.name for f in fields(PoolConfig)}
+KNOWN = POOL_FIELDS | {f.name for f in fields(MemberConfig)} | {"learning_rates"}
+
+
+def _launch_config(name, tmp_path, *extra):
+    args = cli.build_parser().parse_args(["launch", "--pool-dir", str(tmp_path), "--preset", name, *extra])
+    chosen = cli._apply_preset(args)
+    return chosen, PoolConfig.merged(cli._explicit(args, PoolConfig), None)
+
+
+@pytest.mark.parametrize("name", list(presets.PRESETS))
+def test_every_preset_sets_known_options_into_a_valid_pool(name, tmp_path):
+    # _apply_preset sets any key on the parsed arguments: a misspelt key would be dropped silently
+    assert set(presets.PRESETS[name]) <= KNOWN, set(presets.PRESETS[name]) - KNOWN
+    chosen, cfg = _launch_config(name, tmp_path)
+    assert cfg.pool_size == len(chosen["learning_rates"])
+    for key, value in chosen.items():
+        if key in POOL_FIELDS:
+            assert getattr(cfg, key) == value, key
+    assert cfg.train_episodes % cfg.batch_episodes == 0  # whole gradient steps per iteration
+
+
+def test_explicit_options_win_over_the_preset(tmp_path):
+    chosen, cfg = _launch_config("walker2d", tmp_path, "--train-episodes", "20", "--batch-episodes", "10")
+    assert (chosen["train_episodes"], chosen["batch_episodes"]) == (40, 20)
+    assert (cfg.train_episodes, cfg.batch_episodes, cfg.policy) == (20, 10, "mlp")
