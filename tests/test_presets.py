@@ -33,3 +33,16 @@ def test_explicit_options_win_over_the_preset(tmp_path):
     chosen, cfg = _launch_config("walker2d", tmp_path, "--train-episodes", "20", "--batch-episodes", "10")
     assert (chosen["train_episodes"], chosen["batch_episodes"]) == (40, 20)
     assert (cfg.train_episodes, cfg.batch_episodes, cfg.policy) == (20, 10, "mlp")
+
+
+@pytest.mark.parametrize("name", ["hopper", "walker2d", "reacher"])
+def test_preset_batch_size_goes_with_its_own_train_episodes(name, tmp_path):
+    # --train-episodes alone: the preset's batch (20 or 50) need not divide it, so the default
+    # min(10, E) applies; the rest of the preset still does
+    chosen, cfg = _launch_config(name, tmp_path, "--train-episodes", "4")
+    assert chosen["batch_episodes"] > 4
+    assert (cfg.train_episodes, cfg.batch_episodes, cfg.env) == (4, 4, chosen["env"])
+    _, cfg = _launch_config(name, tmp_path, "--train-episodes", "30")
+    assert (cfg.train_episodes, cfg.batch_episodes) == (30, 10)
+    _, cfg = _launch_config(name, tmp_path, "--batch-episodes", "10")  # the preset's E, the given batch
+    assert (cfg.train_episodes, cfg.batch_episodes) == (chosen["train_episodes"], 10)
