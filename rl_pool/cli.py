@@ -56,9 +56,10 @@ def _apply_preset(args) -> dict:
     from . import presets
 
     chosen = presets.get(args.preset)
-    # A preset's gradient step size belongs to its episode count: with --train-episodes given and
-    # --batch-episodes not, the batch is the default min(10, E), not a size that may not divide E.
-    own_batch = getattr(args, "train_episodes", None) is None
+    # A preset's gradient step size belongs to its episode count: with another --train-episodes
+    # given and --batch-episodes not, the batch is the default min(10, E), not a size that may
+    # not divide E.
+    own_batch = getattr(args, "train_episodes", None) in (None, chosen.get("train_episodes"))
     for key, value in chosen.items():
         if key == "learning_rates":
             if getattr(args, "pool_size", None) is None:

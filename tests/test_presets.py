@@ -46,3 +46,5 @@ def test_preset_batch_size_goes_with_its_own_train_episodes(name, tmp_path):
     assert (cfg.train_episodes, cfg.batch_episodes) == (30, 10)
     _, cfg = _launch_config(name, tmp_path, "--batch-episodes", "10")  # the preset's E, the given batch
     assert (cfg.train_episodes, cfg.batch_episodes) == (chosen["train_episodes"], 10)
+    _, cfg = _launch_config(name, tmp_path, "--train-episodes", str(chosen["train_episodes"]))  # its own E
+    assert (cfg.train_episodes, cfg.batch_episodes) == (chosen["train_episodes"], chosen["batch_episodes"])
