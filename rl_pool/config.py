@@ -66,6 +66,10 @@ class PoolConfig:
                                    "later re-score of it as the parent (a lucky first score wears off; with "
                                    "--selection branches a best is re-scored in the iteration after it became "
                                    "the best or was reverted to)", ("first", "mean"), added=True)
+    merge: str = opt("sum", "how the next agent is made from the branches: the best one alone (none), or "
+                            "the parent plus the rank-weighted mean of the updates of every branch that "
+                            "beat it (mean), or that mean times the number of such branches (sum)",
+                     ("none", "mean", "sum"), added=True, before="none")
     seed: int = opt(0, "root seed; every random draw derives from (seed, member, iteration)")
 
     @property
@@ -142,8 +146,10 @@ class PoolConfig:
         if d.get("protocol") not in protocols:
             raise OldProtocol(d.get("protocol"))
         names = {f.name for f in fields(cls)}
-        # fields added after protocol 3 began take their default in pools made before them
-        added = {f.name: f.default if f.default is not MISSING else f.default_factory()
+        # fields added after protocol 3 began take, in pools made before them, the value that
+        # behaves as those pools did (``before``), else their default
+        added = {f.name: f.metadata["before"] if "before" in f.metadata
+                 else f.default if f.default is not MISSING else f.default_factory()
                  for f in fields(cls) if f.metadata.get("added")}
         missing = names - d.keys() - added.keys()
         if missing:

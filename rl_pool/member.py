@@ -20,7 +20,7 @@ import sys
 import time
 import traceback
 
-from . import envs, fsutil, pool, tb, trainer
+from . import envs, fsutil, pool, selection, status, tb, trainer
 from .agent import Agent, AgentMeta
 from .config import MemberConfig, PoolConfig
 from .errors import SignalLatch, Stopped, UsageError
@@ -230,7 +230,7 @@ def _loop(paths: pool.Paths, cfg: PoolConfig, mc: MemberConfig, hb: pool.Heartbe
                 hb.update(state="evaluating")  # shown by the next periodic beat: one write less per iteration
                 ev = trainer.evaluate(tr.agent, env_list, cfg, i)
                 parent = {}
-                if pool.rescores_parent(cfg, prev) and pool.scores_parent(i, me, cfg.pool_size):
+                if selection.rescores_parent(cfg, prev) and selection.scores_parent(i, me, cfg.pool_size):
                     # The parent competes on the same episodes (or, with --best-score mean, a best
                     # is re-scored); several members score it (three in turn), so the selection
                     # does not depend on any one member's deposit being there.
@@ -239,6 +239,7 @@ def _loop(paths: pool.Paths, cfg: PoolConfig, mc: MemberConfig, hb: pool.Heartbe
                               "parent_eval_returns": pe.returns, "parent_eval_lengths": pe.lengths,
                               "parent_sha256": prev["agent_sha256"],
                               "parent_eval_seconds": pe.seconds, "parent_eval_steps": pe.steps}
+                    parent |= _score_fallback(paths, cfg, prev, like, env_list, i)
                 metrics = ev.summary() | parent | {
                     "learning_rate": lr,
                     "train_steps": tr.steps, "train_seconds": tr.seconds,
@@ -262,7 +263,7 @@ def _loop(paths: pool.Paths, cfg: PoolConfig, mc: MemberConfig, hb: pool.Heartbe
             if res.created and i - mc.keep_iterations >= 1:
                 pool.collect_garbage(paths, i - mc.keep_iterations)
             log.info("iteration %d: selected %s (eval return %s); mine %s; waited %.3fs",
-                     i, describe_winner(sel), _fmt(sel.get("eval_return")), _fmt(mine), res.waited)
+                     i, status.describe(sel, origin=False), _fmt(sel.get("eval_return")), _fmt(mine), res.waited)
             board.record(i, sel, metrics, res.waited)
             lr = _next_learning_rate(paths, cfg, mc, sel, lr)
             # written with the next state change (training, a moment from now) or the final one
@@ -300,16 +301,21 @@ def _learning_rate_for(paths: pool.Paths, cfg: PoolConfig, mc: MemberConfig, fir
     return _next_learning_rate(paths, cfg, mc, pool.read_selected(paths, first - 1), own)
 
 
-def describe_winner(sel: dict) -> str:
-    """``member 2``, ``the parent``, ``a revert to iteration 7``, ... for logs and progress lines."""
-    win = sel.get("winner", "branch")
-    if win == "branch":
-        return f"member {sel.get('member')}"
-    if win == "revert":
-        return f"a revert to iteration {sel.get('reverted_to')}"
-    if win == "carried":
-        return "the parent (no valid deposit)"
-    return "the parent"
+def _score_fallback(paths: pool.Paths, cfg: PoolConfig, prev: dict, like: Agent, env_list, i: int) -> dict:
+    """After a merge, the scorers of the parent also re-score the merge's fallback (the best agent
+    the merge's iteration evaluated) on the same episodes, so selection can go back to it."""
+    fb = prev.get("next_fallback")
+    if not isinstance(fb, dict):
+        return {}
+    try:
+        agent = pool.load_named_agent(paths, fb, f"fallback of iteration {i - 1}", paths.selected(i - 1), like)
+    except (RuntimeError, OSError, ValueError) as exc:
+        log.warning("iteration %d: cannot re-score the fallback: %s", i, exc)
+        return {}
+    fe = trainer.evaluate(agent, env_list, cfg, i)
+    return {"fallback_eval_return": fe.mean, "fallback_eval_score": fe.score,
+            "fallback_sha256": fb["agent_sha256"], "fallback_eval_seconds": fe.seconds,
+            "fallback_eval_steps": fe.steps}
 
 
 def _fmt(x) -> str:

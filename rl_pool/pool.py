@@ -30,9 +30,7 @@ import errno
 import hashlib
 import json
 import logging
-import math
 import os
-import re
 import socket
 import stat
 import threading
@@ -40,20 +38,15 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass
 
-from . import claim, fsutil
+from . import claim, fsutil, layout, merge, selection
 from .agent import Agent, max_file_bytes
 from .config import PROTOCOL, READABLE_PROTOCOLS, OldProtocol, PoolConfig
 from .errors import AgentFileError, UnsafeFile, UsageError
+from .layout import DEPOSIT_RE, ITER_RE, member_name
 
 log = logging.getLogger("rl_pool")
 
-DEPOSIT_RE = re.compile(r"^member-(\d{3,})\.json$")
-ITER_RE = re.compile(r"^\d{6,}$")
 TERMINAL_STATES = ("finished", "failed", "stopped")
-
-
-def member_name(m: int) -> str:
-    return f"member-{m:03d}"
 
 
 def sha256(data: bytes) -> str:
@@ -364,19 +357,25 @@ def load_selected_agent(paths: Paths, i: int, sel: dict | None = None, like: Age
     sel = sel if sel is not None else read_selected(paths, i)
     if sel is None:
         raise RuntimeError(f"iteration {i} has no selection")
-    known = _parsed.get(sel.get("agent_sha256"))
+    return load_named_agent(paths, sel, f"selected in iteration {i}", paths.selected(i), like)
+
+
+def load_named_agent(paths: Paths, ref: dict, what: str, where: str, like: Agent | None = None) -> Agent:
+    """The agent a signed record ``ref`` names (``agent``: its path in the pool, ``agent_sha256``),
+    checked against that hash; ``what`` and ``where`` (the record's file) word the errors."""
+    known = _parsed.get(ref.get("agent_sha256"))
     if known is not None:  # parsed from bytes with that hash already (the parent kept, the winner we checked)
-        _parsed.move_to_end(sel["agent_sha256"])
+        _parsed.move_to_end(ref["agent_sha256"])
         return known
-    path = paths.resolve(sel["agent"])
+    path = paths.resolve(ref["agent"])
     cap = max_file_bytes(like.meta) if like is not None else fsutil.AGENT_MAX_BYTES
     try:
         data = paths.read_bytes(path, cap)
     except UnsafeFile as exc:
-        raise RuntimeError(f"{path} (selected in iteration {i}) is refused: {exc.strerror}") from None
+        raise RuntimeError(f"{path} ({what}) is refused: {exc.strerror}") from None
     digest = sha256(data)
-    if digest != sel.get("agent_sha256"):
-        raise RuntimeError(f"{path} does not match the hash recorded in {paths.selected(i)}")
+    if digest != ref.get("agent_sha256"):
+        raise RuntimeError(f"{path} does not match the hash recorded in {where}")
     return parse_agent(data, digest, path)
 
 
@@ -472,7 +471,7 @@ def read_metrics(paths: Paths, i: int, m: int) -> dict:
     if doc.get("iteration") != i or doc.get("member") != m:
         raise ValueError("metrics name another iteration or member")
     ret = doc.get("eval_return")
-    if not _finite(ret):
+    if not selection.finite(ret):
         raise ValueError(f"eval_return is not a finite number ({str(ret)[:40]})")
     return doc
 
@@ -507,245 +506,58 @@ def read_deposit(paths: Paths, i: int, m: int, like: Agent | None = None):
     return doc, read_agent(paths, i, m, doc, like)
 
 
-def choose(candidates: list[tuple[int, float]]) -> tuple[int, float]:
-    """The winner among ``(member, eval_return)``: highest return, ties to the lowest member."""
-    if not candidates:
-        raise ValueError("no candidates")
-    return min(candidates, key=lambda c: (-c[1], c[0]))
-
-
-#: Members that re-score the parent in an iteration, in turn: enough that a selection lacks the
-#: parent's score only if all of them are missing or invalid, few enough that a large pool does not
-#: evaluate one agent on the same episodes N times (at N = 16 that was an eighth of the work).
-PARENT_SCORERS = 3
-
-
-def scores_parent(i: int, m: int, pool_size: int) -> bool:
-    """Whether member ``m`` re-scores the parent in iteration ``i``: every member in a pool of up
-    to :data:`PARENT_SCORERS`, else members ``i``, ``i + N//3`` and ``i + 2N//3`` (mod N).
-
-    Spread over the pool, not consecutive: array jobs place consecutive members on one node, and
-    losing a node should not take every scorer of an iteration with it.
-    """
-    if pool_size <= PARENT_SCORERS:
-        return True
-    offset = (m - i) % pool_size
-    step = pool_size // PARENT_SCORERS
-    return offset % step == 0 and offset // step < PARENT_SCORERS
-
-
-def rescores_parent(cfg: PoolConfig, previous: dict) -> bool:
-    """Whether the members of the iteration after ``previous`` re-score its agent (the parent):
-    with ``--selection parent`` always (it competes); with ``--best-score mean`` and branches
-    only, when the parent is the best so far (just made the best, or reverted to), so its
-    re-score counts towards the best's mean without competing."""
-    if cfg.selection == "parent":
-        return True
-    best = previous.get("best")
-    return cfg.best_score == "mean" and isinstance(best, dict) and best.get("agent_sha256") == previous["agent_sha256"]
-
-
-def parent_report(docs: list[dict], parent_sha: str, shifted: bool = False) -> dict | None:
-    """The deposit whose report of the parent's score counts: the lowest member's that names the
-    right parent and gives a finite return (and, when ``shifted``, a finite shifted score).
-
-    The members :func:`scores_parent` names re-score the agent they started from on
-    the iteration's common evaluation seeds, so all honest reports agree.
-    """
-    for doc in docs:
-        ret = doc.get("parent_eval_return")
-        score = doc.get("parent_eval_score") if shifted else ret
-        if doc.get("parent_sha256") == parent_sha and _finite(ret) and _finite(score):
-            return doc
-    return None
-
-
-#: Larger per-episode returns than this are not believed (no MuJoCo task pays near it); it keeps
-#: the paired differences of a garbled report finite.
-EPISODE_RETURN_MAX = 1e12
-
-
-def episode_scores(doc: dict, n: int, shift: float, max_steps: int, prefix: str = "") -> list[float] | None:
-    """The per-episode scores (return, minus ``shift`` per step) of the ``n`` evaluation episodes
-    a deposit reports (``prefix`` ``"parent_"``: of the parent), or None if it does not report
-    them whole: ``n`` returns within ±:data:`EPISODE_RETURN_MAX` and, with a shift, ``n``
-    lengths of 0 to ``max_steps`` steps."""
-    rets, lens = doc.get(prefix + "eval_returns"), doc.get(prefix + "eval_lengths")
-    if not (isinstance(rets, list) and len(rets) == n
-            and all(_finite(r) and abs(r) <= EPISODE_RETURN_MAX for r in rets)):
-        return None
-    if not shift:
-        return [float(r) for r in rets]
-    if not (isinstance(lens, list) and len(lens) == n
-            and all(isinstance(k, int) and not isinstance(k, bool) and 0 <= k <= max_steps for k in lens)):
-        return None
-    return [float(r) - shift * k for r, k in zip(rets, lens, strict=True)]
-
-
-def paired_margin(branch: list[float], parent: list[float]) -> tuple[float, float]:
-    """``(mean, standard error)`` of the per-episode differences branch - parent on common episodes."""
-    d = [b - p for b, p in zip(branch, parent, strict=True)]
-    n = len(d)
-    mean = math.fsum(d) / n
-    se = math.sqrt(math.fsum((x - mean) ** 2 for x in d) / (n - 1) / n) if n > 1 else 0.0
-    return mean, se
-
-
-def _finite(x) -> bool:
-    """A JSON number that is a finite float (an integer too large for a float is not)."""
-    if isinstance(x, bool) or not isinstance(x, (int, float)):
-        return False
-    try:
-        return math.isfinite(float(x))
-    except OverflowError:
-        return False
-
-
 def select(paths: Paths, i: int, cfg: PoolConfig, like: Agent, members: set[int], reason: str,
            previous: dict) -> dict:
-    """The selection of iteration ``i`` (a pure function of its files and ``previous``, the
-    selection of ``i - 1``).
+    """The selection of iteration ``i``: the deposits of ``members`` read and verified, the rule
+    (:func:`rl_pool.selection.decide`) applied to them and ``previous`` (the selection of
+    ``i - 1``), and, when the rule merges, the merged agent written (``merged-<hash>.npz``).
 
-    Candidates are compared on their *score*: the mean evaluation return of the
-    objective the members train on, i.e. the env's return, or with
-    ``reward_shift`` taken off every step (``eval_score``) when the pool
-    shifts rewards; ``eval_return`` always records the env's own return.
-    ``winner`` says why the agent won: ``branch`` (the best valid deposit;
-    ties go to the lowest member), ``parent`` (with ``cfg.selection ==
-    "parent"``: the agent the iteration started from, re-scored on the same
-    evaluation episodes, beat every branch, so the pool keeps it), ``revert``
-    (``cfg.revert_after`` iterations passed without a new best: back to the
-    best selected agent) or ``carried`` (no valid deposit: the parent carries over).
-    A branch that ties with the parent wins: it has not lost ground.
-
-    ``cfg.selection_margin`` K > 0 asks more of a branch: its per-episode scores minus the
-    parent's on the same episodes must average at least K standard errors of those
-    differences (``paired_margin``), so evaluation noise alone rarely replaces the parent with
-    a worse agent; the best-scoring branch that clears it wins, else the parent. Each
-    considered branch then records ``diff`` and ``se``; a branch that does not report its
-    episodes whole cannot clear it. The parent's score and episodes come from the lowest
-    report that has them whole; without one (deposits from before the margin) the plain
-    comparison of means applies.
+    Only the agents the rule uses are read and checked (hash, format, shapes): the winner's, or
+    with a merge every valid branch's. One that fails its check is skipped with the reason (its
+    reports too) and the rule is applied again without it, so the result is still a pure function
+    of the files.
     """
-    shifted = bool(cfg.reward_shift)
-    considered, skipped, docs = [], [], []
+    reports, skipped = [], []
     for m in range(cfg.pool_size):
         if m not in members:
             skipped.append({"member": m, "reason": "missing"})
             continue
         try:
             doc = read_metrics(paths, i, m)
-            score = doc.get("eval_score") if shifted else doc["eval_return"]
-            if not _finite(score):
-                raise ValueError(f"eval_score is not a finite number ({score!r})")
+            selection.score_of(cfg, doc)
         except ValueError as exc:
             skipped.append({"member": m, "reason": str(exc)})
             continue
-        docs.append(doc)
-        considered.append({"member": m, "eval_return": float(doc["eval_return"]), "score": float(score),
-                           "agent_sha256": doc["agent_sha256"], "doc": doc})
-    # Only the winner's agent is read and checked (hash, format, shapes): the cost of a selection
-    # grows with N small JSON files, not N agents. One that fails its check is skipped with the
-    # reason (its report of the parent too) and the selection is made again without it, so the
-    # result is still a pure function of the files.
-    def parent_episodes(doc):
-        return episode_scores(doc, cfg.eval_episodes, cfg.reward_shift, cfg.max_episode_steps, "parent_")
-
-    sha = previous["agent_sha256"]
+        reports.append(doc)
+    agents: dict[int, Agent] = {}
     while True:
-        report = parent_report(docs, sha, shifted) if rescores_parent(cfg, previous) else None
-        competes = report is not None and cfg.selection == "parent"
-        parent_eps = None
-        if competes and cfg.selection_margin:
-            # the lowest report of the parent with its episodes whole (all honest ones agree)
-            report = parent_report([d for d in docs if parent_episodes(d)], sha, shifted) or report
-            parent_eps = parent_episodes(report)
-        for c in considered:
-            eps = parent_eps and episode_scores(c["doc"], cfg.eval_episodes, cfg.reward_shift,
-                                                cfg.max_episode_steps)
-            c["diff"], c["se"] = paired_margin(eps, parent_eps) if eps else (None, None)
-        eligible = [c for c in considered if parent_eps is None
-                    or (c["diff"] is not None and c["diff"] >= cfg.selection_margin * c["se"])]
-        if not eligible:
+        out, needs = selection.decide(cfg, i, previous, reports, skipped, reason)
+        bad = None
+        for m in needs:
+            if m in agents:
+                continue
+            doc = next(d for d in reports if d["member"] == m)
+            try:
+                agents[m] = read_agent(paths, i, m, doc, like)
+            except ValueError as exc:
+                bad = (m, str(exc))
+                break
+        if bad is None:
             break
-        top, _ = choose([(c["member"], c["score"]) for c in eligible])
-        c = next(c for c in eligible if c["member"] == top)
-        try:
-            read_agent(paths, i, top, c["doc"], like)
-            break
-        except ValueError as exc:
-            considered.remove(c)
-            docs.remove(c["doc"])
-            skipped.append({"member": top, "reason": str(exc)})
-    skipped.sort(key=lambda s: s["member"])
-    keys = ("member", "eval_return", "score") + (("diff", "se") if parent_eps is not None else ())
-    out = {"iteration": i, "considered": [{k: c[k] for k in keys} for c in considered],
-           "skipped": skipped, "quorum_reason": reason,
-           "parent": {"iteration": previous["iteration"], "member": previous.get("member"),
-                      "agent_sha256": previous["agent_sha256"]}}
-    parent = None if report is None else (
-        float(report["parent_eval_return"]), float(report["parent_eval_score" if shifted else "parent_eval_return"]))
-    out["parent"] |= {"eval_return": parent and parent[0], "score": parent and parent[1]}
-    if parent_eps is not None:
-        out["margin"] = cfg.selection_margin
-    keep_parent = {"member": None, "agent": previous["agent"], "agent_sha256": previous["agent_sha256"],
-                   "eval_return": parent and parent[0], "score": parent and parent[1]}
-    if considered:
-        if eligible:  # the loop stopped at the winner, its agent checked
-            best = c
-        else:  # with a margin, no branch cleared it: the parent stays
-            top, _ = choose([(c["member"], c["score"]) for c in considered])
-            best = next(c for c in considered if c["member"] == top)
-        if competes and (not eligible or (parent_eps is None and parent[1] > best["score"])):
-            out |= keep_parent | {"winner": "parent", "best_branch": {k: best[k] for k in keys}}
-        else:
-            out |= {"winner": "branch", "member": best["member"], "eval_return": best["eval_return"],
-                    "score": best["score"], "agent": paths.rel(paths.deposit_npz(i, best["member"])),
-                    "agent_sha256": best["agent_sha256"]}
-    else:
-        out |= keep_parent | {"winner": "carried", "carried_from": previous["iteration"]}
-    return _track_best(out, previous, cfg.revert_after, cfg.best_score == "mean")
-
-
-def _track_best(out: dict, previous: dict, revert_after: int, mean: bool = False) -> dict:
-    """Carry the best selection so far (``best``, by score) and the iterations since it
-    (``since_best``) from ``previous`` to ``out``; revert to the best after ``revert_after`` of them.
-
-    With ``mean`` (``--best-score mean``) the best ranks by ``mean_score``: the mean of its first
-    score and of every later re-score of it as the parent (``scores`` of them in all). A best
-    whose first score was the luck of its iteration's episodes sinks towards what it is worth, so
-    a later agent can take its place and a revert goes back to an agent that earned its rank.
-    ``score`` and ``eval_return`` stay the first ones. A new agent enters with one score; the
-    agent the pool keeps or reverts to is not a new one (its re-score is already counted).
-    """
-    best = previous.get("best")
-    if not isinstance(best, dict):
-        best = None
-    parent = out.get("parent") or {}
-    if mean and best is not None and parent.get("agent_sha256") == best["agent_sha256"] \
-            and parent.get("score") is not None:
-        n = int(best.get("scores") or 1)
-        total = best.get("score_sum", best["score"]) + parent["score"]
-        if math.isfinite(total):  # two huge finite scores can sum to inf, which JSON cannot hold
-            best = best | {"scores": n + 1, "score_sum": total, "mean_score": total / (n + 1)}
-    score = out.get("score")
-    rank = None if best is None else best.get("mean_score", best["score"]) if mean else best["score"]
-    if score is not None and (best is None or (score > rank and not (
-            mean and out.get("agent_sha256") == best["agent_sha256"]))):
-        out["best"] = {"iteration": out["iteration"], "eval_return": out["eval_return"], "score": score,
-                       "agent": out["agent"], "agent_sha256": out["agent_sha256"]}
-        if mean:
-            out["best"] |= {"scores": 1, "score_sum": score, "mean_score": score}
-        out["since_best"] = 0
-        return out
-    out["best"] = best
-    out["since_best"] = int(previous.get("since_best") or 0) + 1
-    if revert_after and out["best"] is not None and out["since_best"] >= revert_after \
-            and out["agent_sha256"] != best["agent_sha256"]:
-        out["instead"] = {k: out.get(k) for k in ("winner", "member", "eval_return", "score")}
-        out |= {"winner": "revert", "member": None, "eval_return": best["eval_return"], "score": best["score"],
-                "agent": best["agent"], "agent_sha256": best["agent_sha256"],
-                "reverted_to": best["iteration"], "since_best": 0}
+        reports = [d for d in reports if d["member"] != bad[0]]
+        skipped.append({"member": bad[0], "reason": bad[1]})
+    if out["winner"] == "merge":
+        spec = out["merge"]
+        parent = load_selected_agent(paths, i - 1, previous, like=like)
+        merged = merge.merge_agents(parent, [agents[m] for m in spec["members"]], spec["weights"],
+                                    spec["scale"], [agents[m] for m in spec["statistics_from"]])
+        data = merged.to_bytes()
+        digest = sha256(data)
+        path = os.path.join(paths.iteration(i), layout.merged_name(digest))
+        make_room(paths, path)
+        fsutil.atomic_write(path, data)
+        parse_agent(data, digest, path)  # every member trains from it next: parsed once
+        out |= {"agent": paths.rel(path), "agent_sha256": digest}
     return out
 
 
@@ -775,6 +587,9 @@ def update_best(paths: Paths, selection: dict | None) -> bool:
     Idempotent, so every member calls it after every barrier: a member killed
     right after writing ``selected.json`` cannot make the pool lose its best.
     """
+    if selection is not None and isinstance(selection.get("evaluated"), dict):
+        # a merge is scored in the next iteration; the best agent its iteration evaluated counts now
+        selection = selection | selection["evaluated"]
     ret = None if selection is None else selection.get("eval_return")
     if ret is None:
         return False
@@ -825,9 +640,10 @@ def collect_garbage(paths: Paths, i: int) -> int:
     sel = read_selected(paths, i)
     if sel is None:
         return 0
-    keep = os.path.basename(sel.get("agent", ""))
+    # the selected agent, and after a merge the best evaluated one (the fallback, perhaps the best)
+    keep = {os.path.basename(str(d.get("agent") or "")) for d in (sel, sel.get("evaluated") or {})}
     removed = _remove_matching(paths.iteration(i), lambda name: (
-        name.endswith(".npz") and name.startswith("member-") and name != keep))
+        name.endswith(".npz") and name.startswith(("member-", layout.MERGED_PREFIX)) and name not in keep))
     return removed + remove_dead_temps(paths.iteration(i))
 
 

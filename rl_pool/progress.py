@@ -112,7 +112,8 @@ class Tracker:
             row = status.history_row(self.paths, sel, self.cfg.pool_size)
             self.rows[i] = row
             self.steps[i] = sum((x.get("train_steps") or 0) + (x.get("eval_steps") or 0)
-                                + (x.get("parent_eval_steps") or 0) for x in row["members"])
+                                + (x.get("parent_eval_steps") or 0)
+                                + (x.get("fallback_eval_steps") or 0) for x in row["members"])
             ret = row["eval_return"]
             if ret is not None and (self.best is None or ret > self.best["eval_return"]):
                 self.best = {"iteration": i, "member": row["selected_member"], "eval_return": ret,

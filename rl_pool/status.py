@@ -53,6 +53,11 @@ def describe(row: dict, origin: bool = True) -> str:
         return f"a revert to iteration {row.get('reverted_to', '?')}{made}"
     if win == "carried":
         return "the parent, carried (no valid deposit)" + made
+    if win == "merge":
+        members = (row.get("merge") or {}).get("members") or []
+        return "a merge of members " + ", ".join(str(m) for m in members)
+    if win == "fallback":
+        return "the fallback (the merge scored lower)" + made
     return "the parent" + made
 
 
@@ -94,6 +99,7 @@ def history_row(paths: pool.Paths, sel: dict, pool_size: int) -> dict:
             "train_steps": _int(doc.get("train_steps")),
             "eval_steps": _int(doc.get("eval_steps")),
             "parent_eval_steps": _int(doc.get("parent_eval_steps")),
+            "fallback_eval_steps": _int(doc.get("fallback_eval_steps")),
             "train_seconds": _num(doc.get("train_seconds")),
             "eval_seconds": _num(doc.get("eval_seconds")),
             "wait_seconds": _num(wait.get("wait_seconds")),
@@ -105,6 +111,7 @@ def history_row(paths: pool.Paths, sel: dict, pool_size: int) -> dict:
         "winner": sel.get("winner", "branch"),
         "agent_from": agent_from(sel),
         "reverted_to": sel.get("reverted_to"),
+        "merge": sel.get("merge"),
         "eval_return": _num(sel.get("eval_return")),
         "quorum_reason": sel.get("quorum_reason"),
         "skipped": sel.get("skipped", []),
@@ -188,6 +195,7 @@ def curve(st: dict) -> list[dict]:
     out, steps, best = [], 0, None
     for r in st["history"]:
         steps += sum((x.get("train_steps") or 0) + (x.get("eval_steps") or 0) + (x.get("parent_eval_steps") or 0)
+                     + (x.get("fallback_eval_steps") or 0)
                      for x in r["members"])
         if r["eval_return"] is not None:
             best = r["eval_return"] if best is None else max(best, r["eval_return"])

@@ -21,7 +21,9 @@ def fake_initial(cfg):
 
 def make_pool(root, pool_size=2, **kw) -> tuple[pool.Paths, PoolConfig]:
     paths = pool.Paths(root)
-    cfg = pool.open_pool(paths, {"pool_size": pool_size, "max_episode_steps": 60, **kw}, fake_initial)
+    # the rule of picking one branch (merges have tests of their own)
+    cfg = pool.open_pool(paths, {"pool_size": pool_size, "max_episode_steps": 60, "merge": "none", **kw},
+                         fake_initial)
     return paths, cfg
 
 

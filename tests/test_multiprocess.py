@@ -8,7 +8,7 @@ import time
 import numpy as np
 import pytest
 
-from rl_pool import Agent, pool
+from rl_pool import Agent, pool, selection
 
 from .conftest import SHORT, past_its_deposit, rl_pool, spawn
 
@@ -190,7 +190,7 @@ def test_in_a_larger_pool_three_members_in_turn_re_score_the_parent(tmp_path):
     for i in range(1, iters + 1):
         docs = [json.loads((d / f"iterations/{i:06d}/member-{m:03d}.json").read_text()) for m in range(n)]
         scorers = [m for m, doc in enumerate(docs) if "parent_eval_return" in doc]
-        assert scorers == [m for m in range(n) if pool.scores_parent(i, m, n)] and len(scorers) == 3
+        assert scorers == [m for m in range(n) if selection.scores_parent(i, m, n)] and len(scorers) == 3
         assert len({docs[m]["parent_eval_return"] for m in scorers}) == 1
         assert all(docs[m]["parent_eval_steps"] > 0 for m in scorers)
         sel = json.loads((d / f"iterations/{i:06d}/selected.json").read_text())

@@ -11,7 +11,7 @@ import time
 import numpy as np
 import pytest
 
-from rl_pool import fsutil, policy, pool
+from rl_pool import fsutil, policy, pool, selection
 from rl_pool.errors import UsageError
 
 from .helpers import Evil, agent, fake_initial, make_pool
@@ -71,10 +71,10 @@ def test_foreign_directories_are_refused(tmp_path):
 
 
 def test_choose_highest_return_ties_to_lowest_member():
-    assert pool.choose([(2, 5.0), (0, 3.0), (1, 5.0)]) == (1, 5.0)
-    assert pool.choose([(3, -1.0)]) == (3, -1.0)
+    assert selection.choose([(2, 5.0), (0, 3.0), (1, 5.0)]) == (1, 5.0)
+    assert selection.choose([(3, -1.0)]) == (3, -1.0)
     with pytest.raises(ValueError):
-        pool.choose([])
+        selection.choose([])
 
 
 def test_selection_is_argmax_over_valid_deposits(tmp_path):
@@ -430,7 +430,7 @@ def test_three_members_in_turn_re_score_the_parent():
     for n in range(1, 40):
         counts = collections.Counter()
         for i in range(1, 3 * n + 1):
-            scorers = [m for m in range(n) if pool.scores_parent(i, m, n)]
+            scorers = [m for m in range(n) if selection.scores_parent(i, m, n)]
             if n <= 3:
                 assert scorers == list(range(n))
                 continue
@@ -521,7 +521,7 @@ def test_best_score_mean_ignores_a_re_score_whose_sum_is_not_finite():
                      "scores": 1, "score_sum": 1.7e308, "mean_score": 1.7e308}}
     out = {"iteration": 6, "parent": {"agent_sha256": "b", "score": 1.7e308}, "score": 5.0, "eval_return": 5.0,
            "agent": "y", "agent_sha256": "c", "winner": "branch", "member": 0}
-    sel = pool._track_best(out, prev, 0, mean=True)
+    sel = selection.track_best(out, prev, 0, mean=True)
     assert sel["best"] == prev["best"] and fsutil.dumps(sel)  # still writable JSON
 
 
@@ -535,7 +535,7 @@ def test_best_score_mean_with_branches_re_scores_only_a_best(tmp_path):
                                           (3.0, 8.0)], start=1):
         _deposit(paths, i, 0, branch, seed=i, parent=parent)
         sels[i] = _decide(paths, cfg, i, {0})
-    assert [pool.rescores_parent(cfg, sels[i]) for i in range(6)] == [False, True, False, True, False, True]
+    assert [selection.rescores_parent(cfg, sels[i]) for i in range(6)] == [False, True, False, True, False, True]
     assert [sels[i]["winner"] for i in range(1, 7)] == ["branch", "branch", "branch", "branch", "revert", "branch"]
     assert sels[2]["parent"]["eval_return"] == 7.0 and sels[2]["member"] == 0  # 7 > 6, yet no competition
     assert (sels[2]["best"]["scores"], sels[2]["best"]["mean_score"]) == (2, 8.5)
@@ -547,7 +547,7 @@ def test_best_score_mean_with_branches_re_scores_only_a_best(tmp_path):
     paths2, cfg2 = make_pool(tmp_path / "q", pool_size=1, selection="branches", revert_after=2)
     _deposit(paths2, 1, 0, 10.0, seed=1, parent=1.0)
     first = _decide(paths2, cfg2, 1, {0})
-    assert not pool.rescores_parent(cfg2, first) and "mean_score" not in first["best"]
+    assert not selection.rescores_parent(cfg2, first) and "mean_score" not in first["best"]
 
 
 def test_with_a_reward_shift_selection_compares_the_training_objective(tmp_path):
@@ -638,11 +638,11 @@ def test_pools_made_before_init_shape_still_read_and_it_shapes_the_initial_agent
 def test_paired_margin_against_numpy():
     rng = np.random.default_rng(3)
     b, p = rng.normal(5, 2, 7), rng.normal(4, 2, 7)
-    mean, se = pool.paired_margin(list(b), list(p))
+    mean, se = selection.paired_margin(list(b), list(p))
     d = b - p
     assert mean == pytest.approx(d.mean(), rel=1e-12)
     assert se == pytest.approx(d.std(ddof=1) / np.sqrt(len(d)), rel=1e-12)
-    assert pool.paired_margin([3.0], [1.0]) == (2.0, 0.0)  # one episode: no spread to measure
+    assert selection.paired_margin([3.0], [1.0]) == (2.0, 0.0)  # one episode: no spread to measure
 
 
 def _margin_deposit(paths, i, m, branch_eps, parent_eps, seed, lengths=None, parent_lengths=None):
@@ -699,13 +699,13 @@ def test_a_selection_margin_uses_shifted_episode_scores_and_needs_whole_episode_
     # member 1 moves better in the same time: +30 per episode
     _margin_deposit(paths, 1, 1, [130.0, 131.0, 130.0], parent, seed=2, lengths=[30, 30, 30], parent_lengths=plens)
     doc = pool.read_metrics(paths, 1, 1)
-    assert pool.episode_scores(doc, 3, 1.0, 60) == [100.0, 101.0, 100.0]
-    assert pool.episode_scores(doc, 3, 0.0, 60) == [130.0, 131.0, 130.0]
-    assert pool.episode_scores(doc, 3, 1.0, 60, "parent_") == [70.0, 70.0, 70.0]
-    assert pool.episode_scores(doc | {"eval_lengths": None}, 3, 1.0, 60) is None  # lengths needed with a shift
-    assert pool.episode_scores(doc | {"eval_lengths": [30, 30, 61]}, 3, 1.0, 60) is None  # longer than an episode
-    assert pool.episode_scores(doc | {"eval_returns": [1.0, float("nan"), 2.0]}, 3, 0.0, 60) is None
-    assert pool.episode_scores(doc, 4, 0.0, 60) is None  # not the pool's number of episodes
+    assert selection.episode_scores(doc, 3, 1.0, 60) == [100.0, 101.0, 100.0]
+    assert selection.episode_scores(doc, 3, 0.0, 60) == [130.0, 131.0, 130.0]
+    assert selection.episode_scores(doc, 3, 1.0, 60, "parent_") == [70.0, 70.0, 70.0]
+    assert selection.episode_scores(doc | {"eval_lengths": None}, 3, 1.0, 60) is None  # lengths needed with a shift
+    assert selection.episode_scores(doc | {"eval_lengths": [30, 30, 61]}, 3, 1.0, 60) is None  # longer than an episode
+    assert selection.episode_scores(doc | {"eval_returns": [1.0, float("nan"), 2.0]}, 3, 0.0, 60) is None
+    assert selection.episode_scores(doc, 4, 0.0, 60) is None  # not the pool's number of episodes
     sel = _decide(paths, cfg, 1, {0, 1})
     assert (sel["winner"], sel["member"]) == ("branch", 1)
     assert [c["diff"] for c in sel["considered"]] == pytest.approx([-29 / 3, 30 + 1 / 3])

@@ -1,0 +1,121 @@
+"""Learning scaling: iterations, env steps and minutes to a return threshold for pools of N members.
+
+    python benchmarks/learning.py --env Swimmer-v5 --threshold 350 --sizes 2,8 --seeds 0,1,2
+    python benchmarks/learning.py --preset halfcheetah --threshold 3000 --sizes 2,8 --seeds 0
+
+Each pool is the default launch (``rl-pool launch``, with ``--preset`` when given, and any
+further options after ``--``), stopped as soon as its best evaluated return reaches the
+threshold, or at ``--max-iterations``. Pools run one after another, each on every core, so
+minutes compare only within one run on one machine; iterations and env steps do not depend on
+the machine (the runs are deterministic in their seed). The last table gives each size's median
+iterations and how many times fewer than the smallest size needed.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import signal
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+
+
+def _progress(pool_dir: str) -> list[dict]:
+    from rl_pool import status
+
+    try:
+        return status.curve(status.status(pool_dir))
+    except Exception:  # the pool is still being made
+        return []
+
+
+def run_pool(pool_dir: str, size: int, seed: int, threshold: float, max_iterations: int,
+             options: list[str], poll: float = 2.0) -> dict:
+    """Run one pool until its best evaluated return reaches ``threshold``; what it took."""
+    cmd = [sys.executable, "-m", "rl_pool", "launch", "--pool-dir", pool_dir, "--pool-size", str(size),
+           "--seed", str(seed), "--iterations", str(max_iterations), "--quiet", *options]
+    t0 = time.monotonic()
+    proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, start_new_session=True)
+    hit = None
+    try:
+        while hit is None:
+            done = proc.poll() is not None
+            rows = _progress(pool_dir)
+            hit = next((r for r in rows if r["best_so_far"] is not None and r["best_so_far"] >= threshold), None)
+            if done:
+                break
+            time.sleep(poll)
+    finally:
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGINT)
+            try:
+                proc.wait(timeout=60)
+            except subprocess.TimeoutExpired:
+                os.killpg(proc.pid, signal.SIGKILL)
+                proc.wait()
+    rows = _progress(pool_dir)
+    last = rows[-1] if rows else {}
+    out = {"size": size, "seed": seed, "reached": hit is not None,
+           "iterations": hit["iteration"] if hit else None,
+           "env_steps": hit["env_steps"] if hit else None,
+           "minutes": round(hit["elapsed_seconds"] / 60, 2) if hit else None,
+           "ran_iterations": last.get("iteration"), "best": last.get("best_so_far"),
+           "wall_minutes": round((time.monotonic() - t0) / 60, 2)}
+    if proc.returncode not in (0, -signal.SIGINT, 130) and hit is None:
+        out["error"] = proc.stderr.read().decode(errors="replace")[-400:] if proc.stderr else ""
+    return out
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--env", default=None, help="task (default: the preset's, else Swimmer-v5)")
+    p.add_argument("--preset", default=None)
+    p.add_argument("--threshold", type=float, required=True)
+    p.add_argument("--sizes", default="2,8", help="pool sizes, comma-separated")
+    p.add_argument("--seeds", default="0,1,2")
+    p.add_argument("--max-iterations", type=int, default=150)
+    p.add_argument("--workdir", default=None, help="where the pools go (default: a temporary directory)")
+    p.add_argument("--out", default=None, help="also write the results as JSON lines here")
+    p.add_argument("options", nargs=argparse.REMAINDER, help="-- then further rl-pool launch options")
+    args = p.parse_args(argv)
+    options = [o for o in args.options if o != "--"]
+    if args.preset:
+        options = ["--preset", args.preset, *options]
+    if args.env:
+        options = ["--env", args.env, *options]
+    sizes = [int(x) for x in args.sizes.split(",")]
+    seeds = [int(x) for x in args.seeds.split(",")]
+    work = args.workdir or tempfile.mkdtemp(prefix="rl-pool-learning-")
+    print(f"# {' '.join(options) or 'defaults'}; threshold {args.threshold}; pools in {work}", flush=True)
+    print(f"{'N':>3} {'seed':>4} {'iterations':>10} {'env steps':>12} {'minutes':>8}  best", flush=True)
+    results = []
+    for size in sizes:
+        for seed in seeds:
+            d = os.path.join(work, f"n{size}-s{seed}")
+            r = run_pool(d, size, seed, args.threshold, args.max_iterations, options)
+            results.append(r)
+            it = r["iterations"] if r["reached"] else f">{r['ran_iterations']}"
+            print(f"{size:>3} {seed:>4} {it!s:>10} {r['env_steps'] or '-'!s:>12} {r['minutes'] or '-'!s:>8}  "
+                  f"{r['best']}" + (f"  ERROR {r['error']}" if r.get("error") else ""), flush=True)
+            if args.out:
+                with open(args.out, "a") as fh:
+                    fh.write(json.dumps(r | {"options": options, "threshold": args.threshold}) + "\n")
+    print(f"\n{'N':>3} {'median iterations':>18} {'fewer than N=' + str(sizes[0]):>16} {'median env steps':>17}")
+    base = None
+    for size in sizes:
+        rs = [r for r in results if r["size"] == size]
+        its = [r["iterations"] if r["reached"] else float("inf") for r in rs]
+        med = statistics.median(its)
+        steps = statistics.median([r["env_steps"] if r["reached"] else float("inf") for r in rs])
+        base = med if base is None else base
+        ratio = base / med if med not in (0, float("inf")) else float("nan")
+        print(f"{size:>3} {med!s:>18} {ratio:>15.2f}x {steps!s:>17}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,334 @@
+"""The selection rule: which agent the pool goes on from after an iteration.
+
+A pure function of the iteration's verified deposit reports (their metrics) and
+the previous selection: :func:`decide` touches no file, so every member computes
+the same record, and the rule is tested with tables of cases. The store
+(:mod:`rl_pool.pool`) reads and verifies the files, hands the reports over, checks
+the agents the decision names, and writes the decision. How the pool works as a
+whole is described in ``docs/protocol.md``.
+
+Winners:
+
+* ``branch``: the best valid deposit (ties to the lowest member);
+* ``parent``: the agent the iteration started from, re-scored on the same
+  evaluation episodes, beat every branch (``--selection parent``);
+* ``merge``: with ``--merge mean|sum``, two or more branches beat the parent
+  (and the fallback): the next agent is the parent plus a rank-weighted
+  combination of their updates (:mod:`rl_pool.merge`); it is scored in the next
+  iteration, as the parent, beside the best agent this iteration evaluated
+  (its ``fallback``), which takes over if the merge turns out worse;
+* ``fallback``: that fallback beat the merged parent and every branch;
+* ``revert``: ``--revert-after`` iterations without a new best: back to the best;
+* ``carried``: no valid deposit: the parent carries over.
+"""
+
+from __future__ import annotations
+
+import math
+
+from .config import PoolConfig
+from .layout import deposit_rel
+
+#: Members that re-score the parent in an iteration, in turn: enough that a selection lacks the
+#: parent's score only if all of them are missing or invalid, few enough that a large pool does not
+#: evaluate one agent on the same episodes N times (at N = 16 that was an eighth of the work).
+PARENT_SCORERS = 3
+
+#: Larger per-episode returns than this are not believed (no MuJoCo task pays near it); it keeps
+#: the paired differences of a garbled report finite.
+EPISODE_RETURN_MAX = 1e12
+
+
+def finite(x) -> bool:
+    """A JSON number that is a finite float (an integer too large for a float is not)."""
+    if isinstance(x, bool) or not isinstance(x, (int, float)):
+        return False
+    try:
+        return math.isfinite(float(x))
+    except OverflowError:
+        return False
+
+
+def score_of(cfg: PoolConfig, doc: dict) -> float:
+    """What selection compares for a deposit: its ``eval_score`` when the pool shifts rewards, else
+    its ``eval_return``; ValueError if that is not a finite number."""
+    score = doc.get("eval_score") if cfg.reward_shift else doc.get("eval_return")
+    if not finite(score):
+        raise ValueError(f"eval_score is not a finite number ({score!r})")
+    return float(score)
+
+
+def choose(candidates: list[tuple[int, float]]) -> tuple[int, float]:
+    """The winner among ``(member, score)``: highest score, ties to the lowest member."""
+    if not candidates:
+        raise ValueError("no candidates")
+    return min(candidates, key=lambda c: (-c[1], c[0]))
+
+
+def scores_parent(i: int, m: int, pool_size: int) -> bool:
+    """Whether member ``m`` re-scores the parent in iteration ``i``: every member in a pool of up
+    to :data:`PARENT_SCORERS`, else members ``i``, ``i + N//3`` and ``i + 2N//3`` (mod N).
+
+    Spread over the pool, not consecutive: array jobs place consecutive members on one node, and
+    losing a node should not take every scorer of an iteration with it.
+    """
+    if pool_size <= PARENT_SCORERS:
+        return True
+    offset = (m - i) % pool_size
+    step = pool_size // PARENT_SCORERS
+    return offset % step == 0 and offset // step < PARENT_SCORERS
+
+
+def rescores_parent(cfg: PoolConfig, previous: dict) -> bool:
+    """Whether the members of the iteration after ``previous`` re-score its agent (the parent):
+    with ``--selection parent`` always (it competes); with ``--best-score mean`` and branches
+    only, when the parent is the best so far (just made the best, or reverted to), so its
+    re-score counts towards the best's mean without competing."""
+    if cfg.selection == "parent":
+        return True
+    best = previous.get("best")
+    return cfg.best_score == "mean" and isinstance(best, dict) and best.get("agent_sha256") == previous["agent_sha256"]
+
+
+def parent_report(docs: list[dict], parent_sha: str, shifted: bool = False, prefix: str = "parent_") -> dict | None:
+    """The deposit whose report of the parent's score counts: the lowest member's that names the
+    right parent and gives a finite return (and, when ``shifted``, a finite shifted score).
+    ``prefix`` ``"fallback_"``: the report of the fallback's score instead.
+
+    The members :func:`scores_parent` names re-score the agent they started from on
+    the iteration's common evaluation seeds, so all honest reports agree.
+    """
+    for doc in docs:
+        ret = doc.get(prefix + "eval_return")
+        score = doc.get(prefix + "eval_score") if shifted else ret
+        if doc.get(prefix + "sha256") == parent_sha and finite(ret) and finite(score):
+            return doc
+    return None
+
+
+def episode_scores(doc: dict, n: int, shift: float, max_steps: int, prefix: str = "") -> list[float] | None:
+    """The per-episode scores (return, minus ``shift`` per step) of the ``n`` evaluation episodes
+    a deposit reports (``prefix`` ``"parent_"``: of the parent), or None if it does not report
+    them whole: ``n`` returns within ±:data:`EPISODE_RETURN_MAX` and, with a shift, ``n``
+    lengths of 0 to ``max_steps`` steps."""
+    rets, lens = doc.get(prefix + "eval_returns"), doc.get(prefix + "eval_lengths")
+    if not (isinstance(rets, list) and len(rets) == n
+            and all(finite(r) and abs(r) <= EPISODE_RETURN_MAX for r in rets)):
+        return None
+    if not shift:
+        return [float(r) for r in rets]
+    if not (isinstance(lens, list) and len(lens) == n
+            and all(isinstance(k, int) and not isinstance(k, bool) and 0 <= k <= max_steps for k in lens)):
+        return None
+    return [float(r) - shift * k for r, k in zip(rets, lens, strict=True)]
+
+
+def paired_margin(branch: list[float], parent: list[float]) -> tuple[float, float]:
+    """``(mean, standard error)`` of the per-episode differences branch - parent on common episodes."""
+    d = [b - p for b, p in zip(branch, parent, strict=True)]
+    n = len(d)
+    mean = math.fsum(d) / n
+    se = math.sqrt(math.fsum((x - mean) ** 2 for x in d) / (n - 1) / n) if n > 1 else 0.0
+    return mean, se
+
+
+def merge_weights(k: int) -> list[float]:
+    """Rank weights of ``k`` merged branches, best first: ``k - r`` for rank ``r``, summing to 1
+    (the linear fitness shaping of evolution strategies, without negative weights: a REINFORCE
+    update is not a symmetric perturbation, and going against one is not an improvement)."""
+    total = k * (k + 1) // 2
+    return [(k - r) / total for r in range(k)]
+
+
+def merge_scale(kind: str, k: int) -> float:
+    """How far a merge of ``k`` branches steps, in units of their weighted mean update: ``mean`` 1
+    (a data-parallel batch: less noise, the same step), ``sum`` ``k`` (the linear scaling rule:
+    k branches' worth of progress in one step)."""
+    return float(k) if kind == "sum" else 1.0
+
+
+def decide(cfg: PoolConfig, i: int, previous: dict, reports: list[dict], skipped: list[dict],
+           reason: str) -> tuple[dict, list[int]]:
+    """The selection record of iteration ``i`` and the members whose agents it uses.
+
+    ``reports``: the valid deposits' metrics (signature, iteration, member and a finite score
+    checked by the store), in member order; ``skipped``: ``{"member", "reason"}`` of the rest;
+    ``previous``: the selection of ``i - 1``. The store verifies the agents of the returned
+    members; one that fails is moved to ``skipped`` and the rule is applied again, so the result
+    stays a pure function of the files.
+
+    Candidates are compared on their *score*: the mean evaluation return of the objective the
+    members train on (with ``reward_shift`` taken off every step when the pool shifts rewards);
+    ``eval_return`` always records the env's own return. A branch that ties with the parent wins:
+    it has not lost ground.
+
+    ``cfg.selection_margin`` K > 0 asks more of a branch: its per-episode scores minus the
+    parent's on the same episodes must average at least K standard errors of those differences
+    (:func:`paired_margin`); the best branch that clears it wins, else the parent. Each
+    considered branch then records ``diff`` and ``se``.
+    """
+    shifted = bool(cfg.reward_shift)
+    docs = list(reports)
+    considered = [{"member": d["member"], "eval_return": float(d["eval_return"]), "score": score_of(cfg, d),
+                   "agent_sha256": d["agent_sha256"], "doc": d} for d in docs]
+    skipped = sorted(skipped, key=lambda s: s["member"])
+    sha = previous["agent_sha256"]
+    report = parent_report(docs, sha, shifted) if rescores_parent(cfg, previous) else None
+    competes = report is not None and cfg.selection == "parent"
+    parent_eps = None
+    if competes and cfg.selection_margin:
+        def parent_episodes(doc):
+            return episode_scores(doc, cfg.eval_episodes, cfg.reward_shift, cfg.max_episode_steps, "parent_")
+
+        # the lowest report of the parent with its episodes whole (all honest ones agree)
+        report = parent_report([d for d in docs if parent_episodes(d)], sha, shifted) or report
+        parent_eps = parent_episodes(report)
+    for c in considered:
+        eps = parent_eps and episode_scores(c["doc"], cfg.eval_episodes, cfg.reward_shift,
+                                            cfg.max_episode_steps)
+        c["diff"], c["se"] = paired_margin(eps, parent_eps) if eps else (None, None)
+    eligible = [c for c in considered if parent_eps is None
+                or (c["diff"] is not None and c["diff"] >= cfg.selection_margin * c["se"])]
+
+    keys = ("member", "eval_return", "score") + (("diff", "se") if parent_eps is not None else ())
+    out = {"iteration": i, "considered": [{k: c[k] for k in keys} for c in considered],
+           "skipped": skipped, "quorum_reason": reason,
+           "parent": {"iteration": previous["iteration"], "member": previous.get("member"),
+                      "agent_sha256": sha}}
+    parent = None if report is None else (
+        float(report["parent_eval_return"]), float(report["parent_eval_score" if shifted else "parent_eval_return"]))
+    out["parent"] |= {"eval_return": parent and parent[0], "score": parent and parent[1]}
+    if parent_eps is not None:
+        out["margin"] = cfg.selection_margin
+    keep_parent = {"member": None, "agent": previous["agent"], "agent_sha256": sha,
+                   "eval_return": parent and parent[0], "score": parent and parent[1]}
+
+    def branch(c) -> dict:
+        return {"winner": "branch", "member": c["member"], "eval_return": c["eval_return"], "score": c["score"],
+                "agent": deposit_rel(i, c["member"]), "agent_sha256": c["agent_sha256"]}
+
+    needs: list[int] = []
+    if not considered:
+        out |= keep_parent | {"winner": "carried", "carried_from": previous["iteration"]}
+    elif cfg.merge != "none" and parent_eps is None:
+        needs = _merge_or_pick(cfg, out, previous, considered, docs, competes and parent, keep_parent, branch)
+    else:
+        if eligible:
+            top, _ = choose([(c["member"], c["score"]) for c in eligible])
+        else:  # with a margin, no branch cleared it: the parent stays
+            top, _ = choose([(c["member"], c["score"]) for c in considered])
+        best = next(c for c in considered if c["member"] == top)
+        if competes and (not eligible or (parent_eps is None and parent[1] > best["score"])):
+            out |= keep_parent | {"winner": "parent", "best_branch": {k: best[k] for k in keys}}
+        else:
+            out |= branch(best)
+            needs = [top]
+    return track_best(out, previous, cfg.revert_after, cfg.best_score == "mean"), needs
+
+
+def _merge_or_pick(cfg: PoolConfig, out: dict, previous: dict, considered: list[dict], docs: list[dict],
+                   parent, keep_parent: dict, branch) -> list[int]:
+    """``decide`` with ``--merge``: fill ``out``; the members whose agents it uses.
+
+    The bar a branch must reach is the best score of the agents that did not train this
+    iteration: the parent (re-scored) and, after a merge, the fallback (the best agent the
+    merge's iteration evaluated, re-scored beside it). Branches at or above the bar are merged
+    (one alone is simply the winner); with none, the better of parent and fallback stays. With
+    ``--selection branches``, or with no report of the parent's score, there is no bar and the
+    better half of the branches is merged.
+    """
+    shifted = bool(cfg.reward_shift)
+    ranked = sorted(considered, key=lambda c: (-c["score"], c["member"]))
+    olds = []  # (score, eval_return, record) of the parent and the fallback, the parent first
+    if parent:
+        olds.append((parent[1], parent[0], keep_parent | {"winner": "parent"}))
+    fb = previous.get("next_fallback")
+    if parent and isinstance(fb, dict):
+        rep = parent_report(docs, fb.get("agent_sha256"), shifted, prefix="fallback_")
+        if rep is not None:
+            ret = float(rep["fallback_eval_return"])
+            score = float(rep["fallback_eval_score" if shifted else "fallback_eval_return"])
+            out["fallback"] = {"eval_return": ret, "score": score, "agent_sha256": fb["agent_sha256"]}
+            olds.append((score, ret, {"winner": "fallback", "member": None, "agent": fb["agent"],
+                                      "agent_sha256": fb["agent_sha256"], "eval_return": ret, "score": score}))
+    if olds:
+        bar = max(s for s, _, _ in olds)
+        chosen = [c for c in ranked if c["score"] >= bar]
+    else:
+        chosen = ranked[:(len(ranked) + 1) // 2]
+    best = ranked[0]
+    if not chosen:
+        _, _, rec = max(olds, key=lambda o: o[0])  # ties: the parent (listed first) stays
+        out |= rec | {"best_branch": {k: best[k] for k in ("member", "eval_return", "score")}}
+        return []
+    if len(chosen) == 1:
+        out |= branch(chosen[0])
+        return [chosen[0]["member"]]
+    weights = merge_weights(len(chosen))
+    evaluated = branch(best)
+    del evaluated["winner"]
+    out |= {"winner": "merge", "member": None, "eval_return": best["eval_return"], "score": best["score"],
+            "agent": None, "agent_sha256": None,
+            "merge": {"kind": cfg.merge, "members": [c["member"] for c in chosen], "weights": weights,
+                      "scale": merge_scale(cfg.merge, len(chosen)),
+                      "statistics_from": [c["member"] for c in considered]},
+            "evaluated": evaluated}
+    return [c["member"] for c in considered]
+
+
+def track_best(out: dict, previous: dict, revert_after: int, mean: bool = False) -> dict:
+    """Carry the best selection so far (``best``, by score) and the iterations since it
+    (``since_best``) from ``previous`` to ``out``; revert to the best after ``revert_after`` of them.
+
+    The candidate is the selected agent, or, when the selection is a merge (scored only in the
+    next iteration), the best agent the iteration evaluated (``evaluated``); after a merge that
+    agent is also the ``fallback`` the next iteration re-scores.
+
+    With ``mean`` (``--best-score mean``) the best ranks by ``mean_score``: the mean of its first
+    score and of every later re-score of it as the parent (``scores`` of them in all). A best
+    whose first score was the luck of its iteration's episodes sinks towards what it is worth, so
+    a later agent can take its place and a revert goes back to an agent that earned its rank.
+    ``score`` and ``eval_return`` stay the first ones. A new agent enters with one score; the
+    agent the pool keeps or reverts to is not a new one (its re-score is already counted).
+    """
+    best = previous.get("best")
+    if not isinstance(best, dict):
+        best = None
+    parent = out.get("parent") or {}
+    if mean and best is not None and parent.get("agent_sha256") == best["agent_sha256"] \
+            and parent.get("score") is not None:
+        n = int(best.get("scores") or 1)
+        total = best.get("score_sum", best["score"]) + parent["score"]
+        if math.isfinite(total):  # two huge finite scores can sum to inf, which JSON cannot hold
+            best = best | {"scores": n + 1, "score_sum": total, "mean_score": total / (n + 1)}
+    cand = out.get("evaluated") or out
+    score = cand.get("score")
+    rank = None if best is None else best.get("mean_score", best["score"]) if mean else best["score"]
+    if score is not None and (best is None or (score > rank and not (
+            mean and cand.get("agent_sha256") == best["agent_sha256"]))):
+        out["best"] = {"iteration": out["iteration"], "eval_return": cand["eval_return"], "score": score,
+                       "agent": cand["agent"], "agent_sha256": cand["agent_sha256"]}
+        if mean:
+            out["best"] |= {"scores": 1, "score_sum": score, "mean_score": score}
+        out["since_best"] = 0
+        return _with_fallback(out)
+    out["best"] = best
+    out["since_best"] = int(previous.get("since_best") or 0) + 1
+    if revert_after and out["best"] is not None and out["since_best"] >= revert_after \
+            and out["agent_sha256"] != best["agent_sha256"]:
+        out["instead"] = {k: out.get(k) for k in ("winner", "member", "eval_return", "score")}
+        out |= {"winner": "revert", "member": None, "eval_return": best["eval_return"], "score": best["score"],
+                "agent": best["agent"], "agent_sha256": best["agent_sha256"],
+                "reverted_to": best["iteration"], "since_best": 0}
+        out.pop("merge", None)
+        out.pop("evaluated", None)
+    return _with_fallback(out)
+
+
+def _with_fallback(out: dict) -> dict:
+    """After a merge, the agent the next iteration re-scores beside it: the best one evaluated."""
+    if out.get("winner") == "merge":
+        ev = out["evaluated"]
+        out["next_fallback"] = {"agent": ev["agent"], "agent_sha256": ev["agent_sha256"],
+                                "member": ev["member"], "iteration": out["iteration"]}
+    return out
