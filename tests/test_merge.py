@@ -1,0 +1,265 @@
+"""The merge: its maths against plain references, the rule as a table of cases, and the store's
+part (every member computes the same bytes; a deposit that fails its checks has no weight)."""
+
+import itertools
+import json
+import multiprocessing
+import os
+import shutil
+
+import numpy as np
+import pytest
+
+from rl_pool import fsutil, merge, normalizer, pool, selection
+from rl_pool.config import PoolConfig
+from rl_pool.normalizer import NormState
+
+from .helpers import agent, make_pool
+
+P = "p" * 64
+
+
+# ---------------------------------------------------------------- maths
+def test_weighted_update_matches_a_plain_loop():
+    rng = np.random.default_rng(0)
+    parent = {"w": rng.normal(size=(3, 4)), "b": rng.normal(size=5)}
+    branches = [{k: v + rng.normal(size=v.shape) for k, v in parent.items()} for _ in range(3)]
+    weights, scale = [0.5, 1 / 3, 1 / 6], 3.0
+    got = merge.weighted_update(parent, branches, weights, scale)
+    for name, p in parent.items():
+        flat = p.ravel()
+        want = []
+        for j in range(flat.size):
+            step = sum(w * (float(b[name].ravel()[j]) - float(flat[j])) for b, w in zip(branches, weights))
+            want.append(float(flat[j]) + scale * step)
+        np.testing.assert_allclose(got[name].ravel(), want, rtol=1e-12, atol=1e-12)
+
+
+def test_one_branch_with_weight_one_and_scale_one_is_that_branch():
+    rng = np.random.default_rng(1)
+    parent = {"w": rng.normal(size=(2, 3))}
+    branch = {"w": rng.normal(size=(2, 3))}
+    np.testing.assert_allclose(merge.weighted_update(parent, [branch], [1.0], 1.0)["w"], branch["w"], rtol=1e-12)
+
+
+def test_pooled_statistics_are_those_of_every_observation():
+    """Each branch's statistics are the parent's plus its own batches (as training makes them);
+    pooled, they must equal the mean and variance of all the observations together."""
+    rng = np.random.default_rng(2)
+    seen = rng.normal(3.0, 2.0, size=(500, 4))
+    parent = normalizer.update(normalizer.init(4), seen)
+    own = [rng.normal(float(k), 1.0 + k, size=(200 + 50 * k, 4)) for k in range(3)]
+    branches = []
+    for data in own:
+        s = parent
+        for part in np.array_split(data, 4):  # several gradient steps' batches
+            s = normalizer.update(s, part)
+        branches.append(s)
+    pooled = merge.pooled_statistics(parent, branches)
+    everything = np.concatenate([seen, *own])
+    assert pooled.count == len(everything)
+    np.testing.assert_allclose(pooled.mean, everything.mean(axis=0), rtol=1e-10)
+    np.testing.assert_allclose(pooled.m2 / pooled.count, everything.var(axis=0), rtol=1e-9)
+
+
+def test_a_branch_that_added_nothing_adds_nothing():
+    parent = NormState(10.0, np.ones(2), np.full(2, 3.0))
+    pooled = merge.pooled_statistics(parent, [parent, parent])
+    assert pooled.count == 10.0
+    np.testing.assert_array_equal(pooled.mean, parent.mean)
+
+
+def test_merged_agent_moments_are_the_weighted_mean():
+    parent = agent(0)
+    a, b = agent(1), agent(2)
+    a = a.evolve(opt_m={k: np.full_like(v, 1.0) for k, v in a.params.items()}, opt_t=4.0)
+    b = b.evolve(opt_m={k: np.full_like(v, 4.0) for k, v in b.params.items()}, opt_t=4.0)
+    m = merge.merge_agents(parent, [a, b], [2 / 3, 1 / 3], 2.0, [a, b])
+    assert m.opt_t == 4.0
+    np.testing.assert_allclose(m.opt_m["w"], 2.0)
+    np.testing.assert_allclose(m.params["w"], parent.params["w"] + 2.0 * (
+        2 / 3 * (a.params["w"] - parent.params["w"]) + 1 / 3 * (b.params["w"] - parent.params["w"])))
+
+
+@pytest.mark.parametrize("k", [1, 2, 3, 7, 16])
+def test_rank_weights_fall_with_rank_and_sum_to_one(k):
+    w = selection.merge_weights(k)
+    assert len(w) == k and abs(sum(w) - 1.0) < 1e-12
+    assert all(a > b for a, b in itertools.pairwise(w))
+    assert selection.merge_scale("sum", k) == k and selection.merge_scale("mean", k) == 1.0
+
+
+# ---------------------------------------------------------------- the rule, as a table
+def _cfg(merge_kind="sum", n=4, **kw):
+    return PoolConfig(pool_size=n, merge=merge_kind, max_episode_steps=100, **kw).validate()
+
+
+def _report(m, ret, parent=None, fallback=None, fb_sha="f" * 64):
+    doc = {"iteration": 1, "member": m, "eval_return": ret, "agent_sha256": f"{m}" * 64}
+    if parent is not None:
+        doc |= {"parent_eval_return": parent, "parent_sha256": P}
+    if fallback is not None:
+        doc |= {"fallback_eval_return": fallback, "fallback_sha256": fb_sha}
+    return doc
+
+
+PREVIOUS = {"iteration": 0, "member": None, "agent": "iterations/000000/initial.npz", "agent_sha256": P}
+AFTER_MERGE = PREVIOUS | {"winner": "merge", "next_fallback": {
+    "agent": "iterations/000000/member-003.npz", "agent_sha256": "f" * 64, "member": 3, "iteration": 0}}
+
+CASES = [
+    # (name, merge, selection, previous, [(member, return, parent report, fallback report)], expected)
+    ("two beat the parent: merged, best first", "sum", "parent", PREVIOUS,
+     [(0, 5.0, 4.0, None), (1, 7.0, None, None), (2, 3.0, None, None), (3, 6.0, None, None)],
+     {"winner": "merge", "members": [1, 3, 0], "weights": [0.5, 1 / 3, 1 / 6], "scale": 3.0, "needs": [0, 1, 2, 3],
+      "eval_return": 7.0}),
+    ("mean steps one mean update", "mean", "parent", PREVIOUS,
+     [(0, 5.0, 4.0, None), (1, 7.0, None, None)],
+     {"winner": "merge", "members": [1, 0], "weights": [2 / 3, 1 / 3], "scale": 1.0, "needs": [0, 1]}),
+    ("one beats the parent: that branch", "sum", "parent", PREVIOUS,
+     [(0, 3.0, 4.0, None), (1, 7.0, None, None), (2, 2.0, None, None)],
+     {"winner": "branch", "member": 1, "needs": [1], "agent": "iterations/000001/member-001.npz"}),
+    ("a tie with the parent counts as beating it", "sum", "parent", PREVIOUS,
+     [(0, 4.0, 4.0, None), (1, 3.0, None, None)],
+     {"winner": "branch", "member": 0, "needs": [0]}),
+    ("none beats the parent: it stays", "sum", "parent", PREVIOUS,
+     [(0, 3.0, 4.0, None), (1, 2.0, None, None)],
+     {"winner": "parent", "needs": [], "eval_return": 4.0, "agent_sha256": P}),
+    ("the fallback beats the merged parent and every branch: back to it", "sum", "parent", AFTER_MERGE,
+     [(0, 3.0, 4.0, 6.0), (1, 5.0, None, None)],
+     {"winner": "fallback", "needs": [], "eval_return": 6.0, "agent_sha256": "f" * 64}),
+    ("branches must beat the fallback too", "sum", "parent", AFTER_MERGE,
+     [(0, 5.5, 4.0, 5.0), (1, 4.5, None, None), (2, 6.0, None, None)],
+     {"winner": "merge", "members": [2, 0], "needs": [0, 1, 2]}),
+    ("no report of the parent: the better half is merged", "sum", "parent", PREVIOUS,
+     [(0, 5.0, None, None), (1, 7.0, None, None), (2, 1.0, None, None), (3, 6.0, None, None)],
+     {"winner": "merge", "members": [1, 3], "scale": 2.0}),
+    ("branches only: the better half", "sum", "branches", PREVIOUS,
+     [(0, 5.0, 9.0, None), (1, 7.0, None, None), (2, 1.0, None, None)],
+     {"winner": "merge", "members": [1, 0]}),
+    ("merge none: the best branch alone, as before", "none", "parent", PREVIOUS,
+     [(0, 5.0, 4.0, None), (1, 7.0, None, None)],
+     {"winner": "branch", "member": 1, "needs": [1]}),
+]
+
+
+@pytest.mark.parametrize("name,kind,sel,previous,rows,want", CASES, ids=[c[0] for c in CASES])
+def test_the_rule(name, kind, sel, previous, rows, want):
+    cfg = _cfg(kind, n=4, selection=sel)
+    reports = [_report(m, r, p, f) for m, r, p, f in rows]
+    out, needs = selection.decide(cfg, 1, previous, reports, [], "complete")
+    assert out["winner"] == want["winner"]
+    assert needs == want.get("needs", needs)
+    if out["winner"] == "merge":
+        assert out["merge"]["members"] == want["members"]
+        assert out["merge"]["statistics_from"] == [m for m, *_ in rows]
+        if "weights" in want:
+            assert out["merge"]["weights"] == pytest.approx(want["weights"])
+        if "scale" in want:
+            assert out["merge"]["scale"] == want["scale"]
+        # the merge is scored next iteration; its best evaluated branch is its fallback
+        top = max(rows, key=lambda r: (r[1], -r[0]))
+        assert out["next_fallback"]["member"] == top[0]
+        assert out["evaluated"]["agent"] == f"iterations/000001/member-{top[0]:03d}.npz"
+    for key in ("member", "eval_return", "agent", "agent_sha256"):
+        if key in want:
+            assert out[key] == want[key]
+
+
+def test_the_best_tracks_the_evaluated_agent_not_the_unscored_merge():
+    cfg = _cfg("sum", n=2)
+    out, _ = selection.decide(cfg, 1, PREVIOUS, [_report(0, 5.0, 4.0), _report(1, 7.0)], [], "complete")
+    assert out["best"]["agent"] == "iterations/000001/member-001.npz" and out["best"]["score"] == 7.0
+
+
+def test_a_revert_drops_the_merge():
+    cfg = _cfg("sum", n=2, revert_after=1)
+    best = {"iteration": 0, "eval_return": 99.0, "score": 99.0, "agent": "x.npz", "agent_sha256": "b" * 64}
+    out, _ = selection.decide(cfg, 1, PREVIOUS | {"best": best}, [_report(0, 5.0, 4.0), _report(1, 7.0)], [],
+                              "complete")
+    assert out["winner"] == "revert" and "merge" not in out and "next_fallback" not in out
+    assert out["agent_sha256"] == "b" * 64
+
+
+# ---------------------------------------------------------------- the store
+def _deposits(paths, n, returns, parent_return, seed0=10):
+    prev = pool.read_selected(paths, 0)
+    for m in range(n):
+        extra = {"parent_eval_return": parent_return, "parent_sha256": prev["agent_sha256"]} if m == 0 else {}
+        a = agent(seed0 + m)
+        a = a.evolve(norm=normalizer.update(a.norm, np.random.default_rng(m).normal(size=(20 + m, 8))))
+        pool.deposit(paths, 1, m, a, {"eval_return": returns[m], **extra})
+
+
+def _select_in_fresh_process(root, key_hex, out):
+    os.environ["RL_POOL_KEY"] = key_hex
+    paths = pool.Paths(root)
+    cfg = pool.read_config(paths)
+    pool.attach_key(paths)
+    sel = pool.select(paths, 1, cfg, pool.load_selected_agent(paths, 0), {0, 1, 2}, "complete",
+                      pool.read_selected(paths, 0))
+    with open(out, "w") as fh:
+        json.dump(sel, fh)
+
+
+def test_two_members_compute_the_same_merged_bytes(tmp_path, monkeypatch):
+    key_hex = "a7" * 32
+    monkeypatch.setenv("RL_POOL_KEY", key_hex)
+    paths, cfg = make_pool(tmp_path / "p", pool_size=3, merge="sum")
+    _deposits(paths, 3, [5.0, 7.0, 6.0], 4.0)
+    mine = pool.select(paths, 1, cfg, pool.load_selected_agent(paths, 0), {0, 1, 2}, "complete",
+                       pool.read_selected(paths, 0))
+    assert mine["winner"] == "merge" and mine["merge"]["members"] == [1, 2, 0]
+    first = fsutil.read_bytes(os.path.join(paths.root, mine["agent"]), 1 << 20)
+    os.remove(os.path.join(paths.root, mine["agent"]))
+    ctx = multiprocessing.get_context("spawn")
+    proc = ctx.Process(target=_select_in_fresh_process, args=(str(paths.root), key_hex, str(tmp_path / "sel.json")))
+    proc.start()
+    proc.join(120)
+    assert proc.exitcode == 0
+    theirs = json.loads((tmp_path / "sel.json").read_text())
+    assert theirs["agent_sha256"] == mine["agent_sha256"] and theirs == json.loads(json.dumps(mine))
+    again = fsutil.read_bytes(os.path.join(paths.root, theirs["agent"]), 1 << 20)
+    assert again == first and pool.sha256(again) == mine["agent_sha256"]
+    # and the bytes are the merge of the deposits, computed here from their files
+    merged = pool.load_selected_agent(paths, 1, mine)
+    parent = pool.load_selected_agent(paths, 0)
+    branches = {m: pool.read_deposit(paths, 1, m)[1] for m in range(3)}
+    w = selection.merge_weights(3)
+    want = parent.params["w"] + 3.0 * sum(wk * (branches[m].params["w"] - parent.params["w"])
+                                          for wk, m in zip(w, [1, 2, 0]))
+    np.testing.assert_allclose(merged.params["w"], want, rtol=1e-12)
+    assert merged.norm.count == parent.norm.count + sum(20 + m for m in range(3))
+
+
+@pytest.mark.parametrize("forgery", ["agent swapped after its hash was signed", "metrics unsigned"])
+def test_a_deposit_that_fails_its_checks_has_no_weight(tmp_path, forgery):
+    paths, cfg = make_pool(tmp_path / "p", pool_size=3, merge="sum")
+    _deposits(paths, 3, [5.0, 7.0, 6.0], 4.0)
+    if forgery.startswith("agent"):
+        fsutil.atomic_write(paths.deposit_npz(1, 2), agent(99).to_bytes())  # the best-but-one branch
+    else:
+        doc = json.loads(open(paths.deposit_json(1, 2)).read())
+        doc.pop("signature")
+        fsutil.write_json(paths.deposit_json(1, 2), doc | {"eval_return": 1e9})
+    sel = pool.select(paths, 1, cfg, pool.load_selected_agent(paths, 0), {0, 1, 2}, "complete",
+                      pool.read_selected(paths, 0))
+    assert sel["merge"]["members"] == [1, 0] and sel["merge"]["statistics_from"] == [0, 1]
+    assert [s["member"] for s in sel["skipped"]] == [2]
+    merged = pool.load_selected_agent(paths, 1, sel)
+    assert merged.norm.count == pool.load_selected_agent(paths, 0).norm.count + 20 + 21
+
+
+def test_gc_keeps_the_merged_agent_and_its_fallback(tmp_path):
+    paths, cfg = make_pool(tmp_path / "p", pool_size=3, merge="sum")
+    _deposits(paths, 3, [5.0, 7.0, 6.0], 4.0)
+    sel = pool.select(paths, 1, cfg, pool.load_selected_agent(paths, 0), {0, 1, 2}, "complete",
+                      pool.read_selected(paths, 0))
+    pool.publish_selection(paths, sel, by=0)
+    stray = os.path.join(paths.iteration(1), "merged-0123456789abcdef.npz")
+    shutil.copy(os.path.join(paths.root, sel["agent"]), stray)
+    pool.collect_garbage(paths, 1)
+    left = sorted(n for n in os.listdir(paths.iteration(1)) if n.endswith(".npz"))
+    assert left == sorted([os.path.basename(sel["agent"]), "member-001.npz"])
+    assert pool.update_best(paths, pool.read_selected(paths, 1))
+    assert json.loads(open(paths.best_json).read())["agent"] == "iterations/000001/member-001.npz"
