@@ -100,9 +100,10 @@ def cmd_launch(args) -> int:
         args.pool_size = len(args.learning_rates)  # one rate per member: the list says how many
     preset = _apply_preset(args)
     lrs = args.learning_rates
-    if lrs is None and args.learning_rate is None and preset.get("learning_rates") \
-            and len(preset["learning_rates"]) == args.pool_size:
-        lrs = list(preset["learning_rates"])
+    if lrs is None and args.learning_rate is None and preset.get("learning_rates"):
+        from .presets import learning_rates
+
+        lrs = learning_rates(preset, args.pool_size)  # a larger pool keeps the preset's rates
     requested = _explicit(args, PoolConfig)
     member_opts = _explicit(args, MemberConfig, skip=("member", "learning_rate"))
     return launch.launch(args.pool_dir, requested, member_opts, lrs,

@@ -75,9 +75,23 @@ def get(name: str) -> dict:
         raise UsageError(f"unknown preset {name!r} (have {', '.join(PRESETS)})") from None
 
 
-def member_learning_rate(preset: dict, member: int, pool_size: int) -> float | None:
-    """The preset's rate for one member, if the preset's list fits this pool."""
+def learning_rates(preset: dict, pool_size: int) -> list[float] | None:
+    """The preset's rate for each member of a pool of ``pool_size``: its own list when the sizes
+    agree, else, as the default launch does, the first member at the preset's first rate (the
+    guard against steps that are too large) and the rest at its last."""
     lrs = preset.get("learning_rates")
-    if lrs and len(lrs) == pool_size and 0 <= member < pool_size:
-        return float(lrs[member])
+    if not lrs or pool_size < 1:
+        return None
+    if len(lrs) == pool_size:
+        return [float(x) for x in lrs]
+    if pool_size == 1:
+        return [float(lrs[-1])]
+    return [float(lrs[0])] + [float(lrs[-1])] * (pool_size - 1)
+
+
+def member_learning_rate(preset: dict, member: int, pool_size: int) -> float | None:
+    """The preset's rate for one member (:func:`learning_rates`)."""
+    lrs = learning_rates(preset, pool_size)
+    if lrs and 0 <= member < pool_size:
+        return lrs[member]
     return None

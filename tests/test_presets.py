@@ -48,3 +48,16 @@ def test_preset_batch_size_goes_with_its_own_train_episodes(name, tmp_path):
     assert (cfg.train_episodes, cfg.batch_episodes) == (chosen["train_episodes"], 10)
     _, cfg = _launch_config(name, tmp_path, "--train-episodes", str(chosen["train_episodes"]))  # its own E
     assert (cfg.train_episodes, cfg.batch_episodes) == (chosen["train_episodes"], chosen["batch_episodes"])
+
+
+@pytest.mark.parametrize("size,want", [(2, [0.001, 0.003]), (8, [0.001] + [0.003] * 7), (1, [0.003])])
+def test_a_preset_grown_to_more_members_keeps_its_rates(size, want, tmp_path, monkeypatch):
+    # the first member at the preset's first (guard) rate, the rest at its last; never the
+    # linear defaults (0.01, then 0.1), ten to a hundred times the MLP preset's rates
+    from rl_pool import launch
+
+    seen = {}
+    monkeypatch.setattr(launch, "launch", lambda pool_dir, requested, opts, lrs, *a, **kw: seen.update(lrs=lrs))
+    cli.main(["launch", "--pool-dir", str(tmp_path / "p"), "--preset", "halfcheetah", "--pool-size", str(size)])
+    assert seen["lrs"] == want
+    assert [presets.member_learning_rate(presets.PRESETS["halfcheetah"], m, size) for m in range(size)] == want
