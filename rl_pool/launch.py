@@ -18,7 +18,7 @@ import subprocess
 import sys
 import time
 
-from . import fsutil, pool, progress, status
+from . import fsutil, heartbeat, pool, progress, status
 from .config import MemberConfig
 from .errors import SignalLatch, UsageError, drop_output
 from .threads import capped_environ
@@ -164,7 +164,7 @@ def _stop_all(procs, sig, keep=None, grace: float = 30.0) -> list[int]:
 
 
 def _why(paths, m) -> str:
-    hb = pool.read_heartbeat(paths, m) or {}
+    hb = heartbeat.read_heartbeat(paths, m) or {}
     if hb.get("error"):
         return str(hb["error"])
     try:

@@ -20,7 +20,7 @@ import sys
 import time
 import traceback
 
-from . import envs, fsutil, pool, selection, status, tb, trainer
+from . import barrier, envs, fsutil, heartbeat, pool, selection, status, tb, trainer
 from .agent import Agent, AgentMeta
 from .config import MemberConfig, PoolConfig
 from .errors import SignalLatch, Stopped, UsageError
@@ -78,11 +78,11 @@ def _setup_logging(paths: pool.Paths, member: int, quiet: bool) -> None:
 
 
 def _check_not_running(paths: pool.Paths, member: int, stale_after: float) -> None:
-    hb = pool.read_heartbeat(paths, member)
-    if not hb or hb.get("host") != pool.HOST or hb.get("state") in pool.TERMINAL_STATES:
+    hb = heartbeat.read_heartbeat(paths, member)
+    if not hb or hb.get("host") != heartbeat.HOST or hb.get("state") in heartbeat.TERMINAL_STATES:
         return
     pid = hb.get("pid")
-    if not isinstance(pid, int) or pid == os.getpid() or not pool.pid_alive(pid):
+    if not isinstance(pid, int) or pid == os.getpid() or not heartbeat.pid_alive(pid):
         return
     try:
         with open(f"/proc/{pid}/cmdline", "rb") as fh:
@@ -123,7 +123,7 @@ def run(pool_dir: str, requested: dict, mc: MemberConfig, quiet: bool = False) -
         log.info("pool already at iteration %d (target %d): nothing to do", last, mc.iterations)
         return EXIT_OK
 
-    hb = pool.Heartbeat(paths, me, interval=min(2.0, mc.heartbeat_timeout / 4),
+    hb = heartbeat.Heartbeat(paths, me, interval=min(2.0, mc.heartbeat_timeout / 4),
                         extra={"learning_rate": mc.learning_rate, "target": mc.iterations})
     old = {}
     try:
@@ -134,7 +134,7 @@ def run(pool_dir: str, requested: dict, mc: MemberConfig, quiet: bool = False) -
         log.warning("stopped by %s; deposits on disk are whole, restart to resume", exc)
         hb.stop("stopped", error=f"stopped by {exc}")
         return 128 + exc.signum
-    except pool.BarrierTimeout as exc:
+    except barrier.BarrierTimeout as exc:
         log.error("%s", exc)
         hb.stop("failed", error=str(exc))
         return EXIT_BARRIER
@@ -173,7 +173,7 @@ def disk_error_line(member: int, exc: OSError, root: str) -> str:
             + "; free space (or make the pool writable) and run it again to resume")
 
 
-def _disk_error(paths: pool.Paths, member: int, hb: pool.Heartbeat | None, exc: OSError, quiet: bool) -> int:
+def _disk_error(paths: pool.Paths, member: int, hb: heartbeat.Heartbeat | None, exc: OSError, quiet: bool) -> int:
     """Stop with one line on stderr, in the log and in the heartbeat (each only if it can still be
     written). Every file was written whole or not at all, so a restart resumes exactly."""
     line = disk_error_line(member, exc, paths.root)
@@ -190,7 +190,7 @@ def _disk_error(paths: pool.Paths, member: int, hb: pool.Heartbeat | None, exc: 
     return EXIT_DISK
 
 
-def _loop(paths: pool.Paths, cfg: PoolConfig, mc: MemberConfig, hb: pool.Heartbeat, first: int) -> None:
+def _loop(paths: pool.Paths, cfg: PoolConfig, mc: MemberConfig, hb: heartbeat.Heartbeat, first: int) -> None:
     me = mc.member
     from . import learner
 
@@ -198,7 +198,7 @@ def _loop(paths: pool.Paths, cfg: PoolConfig, mc: MemberConfig, hb: pool.Heartbe
     like = pool.load_selected_agent(paths, 0)
     kwargs = dict(cfg.env_kwargs, max_episode_steps=cfg.max_episode_steps)
     env_list = [envs.make(cfg.env, kwargs)[0] for _ in range(max(cfg.batch_episodes, cfg.eval_episodes))]
-    liveness = pool.Liveness(paths, mc.heartbeat_timeout)
+    liveness = heartbeat.Liveness(paths, mc.heartbeat_timeout)
     quorum = mc.quorum_for(cfg.pool_size)
     log.info("member %d of %d on %s, lr %g, from iteration %d to %d (quorum %d)",
              me, cfg.pool_size, cfg.env, mc.learning_rate, first, mc.iterations, quorum)
@@ -253,7 +253,7 @@ def _loop(paths: pool.Paths, cfg: PoolConfig, mc: MemberConfig, hb: pool.Heartbe
                 mine = ev.mean
                 hb.update(last_return=mine)
             hb.set_soon(state="waiting", iteration=i)  # a short wait is not worth a write
-            res = pool.barrier(paths, i, cfg, me, like, quorum, mc.barrier_timeout, liveness,
+            res = barrier.barrier(paths, i, cfg, me, like, quorum, mc.barrier_timeout, liveness,
                                poll_max=mc.poll_max_for(cfg.pool_size), previous=prev, check=_stop.check)
             pool.fsutil.write_json(paths.wait_json(i, me),
                                    {"iteration": i, "member": me, "wait_seconds": res.waited,

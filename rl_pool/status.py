@@ -6,7 +6,7 @@ import os
 import re
 import time
 
-from . import fsutil, pool
+from . import fsutil, heartbeat, pool
 
 _AGENT_RE = re.compile(r"^iterations/(\d{6,})/(?:member-(\d{3,})\.npz|initial\.npz)$")
 
@@ -133,7 +133,7 @@ def members(paths: pool.Paths, pool_size: int) -> list[dict]:
     """Heartbeats with their age as seen from here (file mtime on this host's clock)."""
     out = []
     for m in range(pool_size):
-        hb = pool.read_heartbeat(paths, m)
+        hb = heartbeat.read_heartbeat(paths, m)
         if hb is None:
             out.append({"member": m, "state": "absent"})
             continue
@@ -142,8 +142,8 @@ def members(paths: pool.Paths, pool_size: int) -> list[dict]:
         except OSError:
             age = None
         state = hb.get("state")
-        if (state not in pool.TERMINAL_STATES and hb.get("host") == pool.HOST
-                and isinstance(hb.get("pid"), int) and not pool.pid_alive(hb["pid"])):
+        if (state not in heartbeat.TERMINAL_STATES and hb.get("host") == heartbeat.HOST
+                and isinstance(hb.get("pid"), int) and not heartbeat.pid_alive(hb["pid"])):
             state = "dead"
         out.append({"member": m, "state": state, "iteration": hb.get("iteration"),
                     "pid": hb.get("pid"), "host": hb.get("host"), "heartbeat_age": age,

@@ -20,7 +20,7 @@ import time
 
 import pytest
 
-from rl_pool import claim, fsutil, pool
+from rl_pool import claim, fsutil, heartbeat, pool
 from rl_pool.errors import UnsafeFile
 
 from .conftest import ROOT, SHORT, rl_pool
@@ -283,9 +283,9 @@ def test_heartbeats_that_are_special_files_read_as_absent(tmp_path):
     paths, _cfg = make_pool(tmp_path / "p", pool_size=3)
     os.mkfifo(paths.heartbeat(1))
     os.symlink("/dev/zero", paths.heartbeat(2))
-    assert _in_time(lambda: pool.read_heartbeat(paths, 1))["value"] is None
-    assert pool.read_heartbeat(paths, 2) is None
-    live = pool.Liveness(paths, timeout=0.05)
+    assert _in_time(lambda: heartbeat.read_heartbeat(paths, 1))["value"] is None
+    assert heartbeat.read_heartbeat(paths, 2) is None
+    live = heartbeat.Liveness(paths, timeout=0.05)
     assert live.stale(1) is None
     time.sleep(0.1)
     assert "unchanged" in live.stale(1)
@@ -427,7 +427,9 @@ def test_special_files_everywhere_in_a_live_pool(tmp_path):
     reasons = {1: "FIFO", 2: "unsigned", 3: "missing", 4: "directory", 5: "socket"}
     for i in range(1, 6):
         sel = json.loads((d / f"iterations/{i:06d}/selected.json").read_text())
-        assert sel["winner"] in ("branch", "parent") and sel["member"] in (0, 1, None)
+        assert sel["winner"] in ("branch", "parent", "merge", "fallback") and sel["member"] in (0, 1, None)
+        if sel["winner"] == "merge":  # nothing of member 2 has weight in it
+            assert set(sel["merge"]["members"]) | set(sel["merge"]["statistics_from"]) <= {0, 1}
         assert {c["member"] for c in sel["considered"]} <= {0, 1} and sel["considered"]
         skipped = {s["member"]: s["reason"] for s in sel["skipped"]}
         assert reasons[i] in skipped.pop(2), sel["skipped"]
@@ -482,7 +484,7 @@ def test_random_sigkills_and_restarts_lose_nothing(tmp_path):
                     assert s["p"].returncode == 0, err
                     done.add(m)
                     continue
-                hb = pool.read_heartbeat(paths, m) or {}
+                hb = heartbeat.read_heartbeat(paths, m) or {}
                 at_work = hb.get("pid") == s["p"].pid and hb.get("state") in ("training", "evaluating", "waiting")
                 due = 1 + len(kills) * (CHAOS_ITERS - 2) // 20
                 if s["at"] is None and at_work and (hb.get("iteration") or 0) >= due:

@@ -8,7 +8,7 @@ import time
 import numpy as np
 import pytest
 
-from rl_pool import Agent, pool, selection
+from rl_pool import Agent, heartbeat, selection
 
 from .conftest import SHORT, past_its_deposit, rl_pool, spawn
 
@@ -38,7 +38,7 @@ def history(d):
     return out
 
 
-def run_pool(d, lrs=(0.003, 0.03), extra=("--lr-adapt", 2), iters=ITERS):
+def run_pool(d, lrs=(0.003, 0.03), extra=("--lr-adapt", 2, "--seed", 3), iters=ITERS):
     procs = [spawn("train", "--pool-dir", d, "--pool-size", 2, "--member", m, "--learning-rate", lr,
                    "--iterations", iters, *SHORT, "--quiet", *extra) for m, lr in enumerate(lrs)]
     for p in procs:
@@ -63,13 +63,22 @@ def test_two_member_pool_end_to_end(reference):
         # both members re-scored the parent on the same episodes, and agree
         parent = deps[0][4]
         assert deps[1][4] == parent
-        # selection = argmax with ties to the lowest member; the parent wins only if strictly better
-        want = min(deps, key=lambda m: (-deps[m][0], m))
-        if parent > deps[want][0]:
-            assert (winner, member, ret) == ("parent", None, parent)
-            assert sha == hist[i - 2][2] if i > 1 else True
-        else:
-            assert (winner, member, ret) == ("branch", want, deps[want][0])
+        sel = json.loads((d / f"iterations/{i:06d}/selected.json").read_text())
+        # the bar: the parent's score, and after a merge the fallback's (re-scored beside it); the
+        # branches at or above it are merged, one alone wins, none leaves the better of the two
+        fallback = (sel.get("fallback") or {}).get("eval_return")
+        bar = parent if fallback is None else max(parent, fallback)
+        above = sorted((m for m in deps if deps[m][0] >= bar), key=lambda m: (-deps[m][0], m))
+        if not above:
+            won = "fallback" if fallback is not None and fallback > parent else "parent"
+            assert (winner, member, ret) == (won, None, max(parent, fallback or parent))
+            if won == "parent":
+                assert sha == hist[i - 2][2] if i > 1 else True
+        elif len(above) == 1:
+            assert (winner, member, ret) == ("branch", above[0], deps[above[0]][0])
+        else:  # a merge: scored next iteration; the best evaluated branch stands for it meanwhile
+            assert (winner, member, ret) == ("merge", None, deps[above[0]][0])
+            assert sel["merge"]["members"] == above and sha not in (deps[0][2], deps[1][2])
         if i == 1:
             assert deps[0][3] == 0.003 and deps[1][3] == 0.03
         else:  # --lr-adapt 2: the loser of i-1 takes the winner's rate x2 or /2, the winner keeps its own
@@ -79,12 +88,11 @@ def test_two_member_pool_end_to_end(reference):
                     assert deps[m][3] == prev_deps[m][3]
                 else:
                     assert deps[m][3] / prev_deps[prev_winner][3] in (pytest.approx(2.0), pytest.approx(0.5))
-        sel = json.loads((d / f"iterations/{i:06d}/selected.json").read_text())
         assert sel["quorum_reason"] == "complete" and sel["skipped"] == []
         if ret > best[1]:
             best = (i, ret)
-    # the run covers both outcomes, so the kill/restart tests below replay a parent win too
-    assert {h[4] for h in hist} == {"branch", "parent"}
+    # the run covers every outcome, so the kill/restart tests below replay merges and parent wins too
+    assert {h[4] for h in hist} >= {"branch", "parent", "merge"}, {h[4] for h in hist}
     b = json.loads((d / "best.json").read_text())
     assert (b["iteration"], b["eval_return"]) == best
     Agent.load(d / "best.npz")
@@ -106,7 +114,7 @@ def test_same_settings_twice_give_the_same_history(reference, tmp_path):
 def test_kill_and_restart_reproduces_the_uninterrupted_history(reference, tmp_path, sig, state):
     _, hist = reference
     d = tmp_path / "killed"
-    args = ["--pool-size", 2, "--iterations", ITERS, *SHORT, "--quiet", "--lr-adapt", 2]
+    args = ["--pool-size", 2, "--iterations", ITERS, *SHORT, "--quiet", "--lr-adapt", 2, "--seed", 3]
     m0 = spawn("train", "--pool-dir", d, "--member", 0, "--learning-rate", 0.003, *args)
     m1 = spawn("train", "--pool-dir", d, "--member", 1, "--learning-rate", 0.03, *args)
     hb = d / "members/member-001.json"
@@ -136,7 +144,7 @@ def test_kill_and_restart_reproduces_the_uninterrupted_history(reference, tmp_pa
         assert m1.returncode == -signal.SIGKILL
     assert m0.poll() is None  # member 0 waits for it: quorum 2 of 2
     # a killed writer may leave a temp file: plant one too, it must be ignored and cleaned
-    host = pool.HOST.split(".")[0]
+    host = heartbeat.HOST.split(".")[0]
     (d / f"iterations/{killed_at:06d}/.member-001.npz.tmp-{host}-{m1.pid}-deadbeef").write_bytes(b"half")
     m1 = spawn("train", "--pool-dir", d, "--member", 1, "--learning-rate", 0.03, *args)
     for p in (m0, m1):
@@ -195,8 +203,15 @@ def test_in_a_larger_pool_three_members_in_turn_re_score_the_parent(tmp_path):
         assert all(docs[m]["parent_eval_steps"] > 0 for m in scorers)
         sel = json.loads((d / f"iterations/{i:06d}/selected.json").read_text())
         assert sel["parent"]["eval_return"] == docs[scorers[0]]["parent_eval_return"]
-        assert sel["winner"] == ("parent" if sel["parent"]["eval_return"] > max(doc["eval_return"] for doc in docs)
-                                 else "branch")
+        prev = json.loads((d / f"iterations/{i - 1:06d}/selected.json").read_text())
+        bar = sel["parent"]["eval_return"]
+        if prev.get("winner") == "merge":  # the same scorers re-scored the merge's fallback, and agree
+            assert len({docs[m]["fallback_eval_return"] for m in scorers}) == 1
+            assert sel["fallback"]["eval_return"] == docs[scorers[0]]["fallback_eval_return"]
+            bar = max(bar, sel["fallback"]["eval_return"])
+        above = sorted((m for m in range(n) if docs[m]["eval_return"] >= bar), key=lambda m: -docs[m]["eval_return"])
+        assert sel["winner"] in ({"merge"} if len(above) > 1 else {"branch"} if above else {"parent", "fallback"})
+        assert sel["winner"] != "merge" or sel["merge"]["members"] == above
 
 
 def test_best_score_mean_with_branches_re_scores_each_new_best_and_revert(tmp_path):

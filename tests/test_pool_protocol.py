@@ -11,7 +11,7 @@ import time
 import numpy as np
 import pytest
 
-from rl_pool import fsutil, policy, pool, selection
+from rl_pool import barrier, fsutil, heartbeat, policy, pool, selection
 from rl_pool.errors import UsageError
 
 from .helpers import Evil, agent, fake_initial, make_pool
@@ -174,8 +174,8 @@ def test_gc_keeps_selected_agent_and_all_json(tmp_path):
     paths, cfg = make_pool(tmp_path / "p", pool_size=3)
     for m, r in enumerate([1.0, 7.0, 2.0]):
         _deposit(paths, 1, m, r)
-    open(os.path.join(paths.iteration(1), f".member-002.npz.tmp-{pool.HOST.split('.')[0]}-{2**22 + 4321}-x"), "w").close()  # a dead writer's
-    live = f".member-000.json.tmp-{pool.HOST.split('.')[0]}-{os.getpid()}-y"
+    open(os.path.join(paths.iteration(1), f".member-002.npz.tmp-{heartbeat.HOST.split('.')[0]}-{2**22 + 4321}-x"), "w").close()  # a dead writer's
+    live = f".member-000.json.tmp-{heartbeat.HOST.split('.')[0]}-{os.getpid()}-y"
     open(os.path.join(paths.iteration(1), live), "w").close()  # a live writer's: kept
     sel = pool.select(paths, 1, cfg, _like(paths), {0, 1, 2}, "complete", pool.read_selected(paths, 0))
     pool.publish_selection(paths, sel, by=0)
@@ -212,7 +212,7 @@ def test_atomic_write_leaves_no_temp_and_create_once_is_once(tmp_path):
 
 def test_liveness_judges_change_not_clocks(tmp_path):
     paths, _cfg = make_pool(tmp_path / "p", pool_size=2)
-    live = pool.Liveness(paths, timeout=0.2)
+    live = heartbeat.Liveness(paths, timeout=0.2)
     assert live.stale(1) is None  # never seen: not stale until the timeout passes
     import time
 
@@ -224,30 +224,30 @@ def test_liveness_judges_change_not_clocks(tmp_path):
     assert live.stale(1) is None
     fsutil.write_json(paths.heartbeat(1), paths.sign(doc | {"state": "failed", "beat": 2}))
     assert "failed" in live.stale(1)
-    fsutil.write_json(paths.heartbeat(1), paths.sign(doc | {"host": pool.HOST, "pid": 2**22 + 12345, "beat": 3}))
+    fsutil.write_json(paths.heartbeat(1), paths.sign(doc | {"host": heartbeat.HOST, "pid": 2**22 + 12345, "beat": 3}))
     assert "gone" in live.stale(1)
 
 
 def test_a_heartbeat_writes_a_quick_state_change_when_its_gap_has_passed(tmp_path, monkeypatch):
     import time
 
-    monkeypatch.setattr(pool.Heartbeat, "MIN_GAP", 0.5)  # "within the gap" holds on a loaded machine too
+    monkeypatch.setattr(heartbeat.Heartbeat, "MIN_GAP", 0.5)  # "within the gap" holds on a loaded machine too
     paths, _cfg = make_pool(tmp_path / "p", pool_size=1)
-    hb = pool.Heartbeat(paths, 0, interval=30.0, extra={}).start()
-    read = lambda: pool.read_heartbeat(paths, 0)  # noqa: E731
+    hb = heartbeat.Heartbeat(paths, 0, interval=30.0, extra={}).start()
+    read = lambda: heartbeat.read_heartbeat(paths, 0)  # noqa: E731
     assert (read()["state"], read()["beat"]) == ("starting", 1)
     hb.set(state="training", iteration=1)  # written at once
     assert (read()["state"], read()["iteration"], read()["beat"]) == ("training", 1, 2)
     hb.set_soon(state="waiting")  # within the gap: left to the beat thread
     assert read()["state"] == "training"
-    time.sleep(2 * pool.Heartbeat.MIN_GAP + 0.1)  # the pending write, then a full gap after it
+    time.sleep(2 * heartbeat.Heartbeat.MIN_GAP + 0.1)  # the pending write, then a full gap after it
     assert (read()["state"], read()["beat"]) == ("waiting", 3)
     # a change after the gap is written at once; one made moot by a write before the gap ends is not rewritten
     hb.set_soon(state="waiting", iteration=2)
     assert (read()["iteration"], read()["beat"]) == (2, 4)
     hb.set_soon(state="waiting", iteration=3)
     hb.set(state="training", iteration=4)
-    time.sleep(2 * pool.Heartbeat.MIN_GAP + 0.1)  # a pending write would have come by now
+    time.sleep(2 * heartbeat.Heartbeat.MIN_GAP + 0.1)  # a pending write would have come by now
     assert (read()["state"], read()["iteration"], read()["beat"]) == ("training", 4, 5)
     hb.stop("finished")
     assert (read()["state"], read()["beat"]) == ("finished", 6)
@@ -259,13 +259,13 @@ def test_barrier_lists_again_after_a_stale_verdict(tmp_path):
     _deposit(paths, 1, 0, 1.0)
     _deposit(paths, 1, 1, 2.0)
 
-    class LateThenStopped(pool.Liveness):
+    class LateThenStopped(heartbeat.Liveness):
         def stale(self, m):
             if not os.path.exists(paths.deposit_json(1, 2)):
                 _deposit(paths, 1, 2, 9.0)
             return f"member {m} stopped"
 
-    res = pool.barrier(paths, 1, cfg, 0, _like(paths), quorum=2, timeout=30,
+    res = barrier.barrier(paths, 1, cfg, 0, _like(paths), quorum=2, timeout=30,
                        liveness=LateThenStopped(paths, 60))
     assert res.selection["member"] == 2 and res.selection["skipped"] == []
     assert res.selection["quorum_reason"] == "complete"
@@ -288,8 +288,8 @@ def test_the_member_that_sees_every_deposit_selects_the_others_wait_on_the_decis
     out = {}
 
     def member0():
-        out[0] = pool.barrier(paths, 1, cfg, 0, _like(paths), quorum=2, timeout=30,
-                              liveness=pool.Liveness(paths, 60), poll_max=0.01)
+        out[0] = barrier.barrier(paths, 1, cfg, 0, _like(paths), quorum=2, timeout=30,
+                              liveness=heartbeat.Liveness(paths, 60), poll_max=0.01)
 
     fsutil.listdir = counting_listdir
     try:
@@ -297,8 +297,8 @@ def test_the_member_that_sees_every_deposit_selects_the_others_wait_on_the_decis
         t.start()
         time.sleep(0.6)  # member 0 polls the decision ~60 times meanwhile
         _deposit(paths, 1, 1, 2.0)
-        out[1] = pool.barrier(paths, 1, cfg, 1, _like(paths), quorum=2, timeout=30,
-                              liveness=pool.Liveness(paths, 60), poll_max=0.01)
+        out[1] = barrier.barrier(paths, 1, cfg, 1, _like(paths), quorum=2, timeout=30,
+                              liveness=heartbeat.Liveness(paths, 60), poll_max=0.01)
         t.join(10)
     finally:
         fsutil.listdir = real_listdir
@@ -315,8 +315,8 @@ def test_a_waiting_member_selects_when_the_last_depositor_does_not(tmp_path):
     _deposit(paths, 1, 0, 1.0)
     threading.Timer(0.3, lambda: _deposit(paths, 1, 1, 2.0)).start()
     t0 = time.monotonic()
-    res = pool.barrier(paths, 1, cfg, 0, _like(paths), quorum=2, timeout=30,
-                       liveness=pool.Liveness(paths, 60), poll_max=0.01)
+    res = barrier.barrier(paths, 1, cfg, 0, _like(paths), quorum=2, timeout=30,
+                       liveness=heartbeat.Liveness(paths, 60), poll_max=0.01)
     waited = time.monotonic() - t0
     assert res.created and res.selection["member"] == 1 and res.selection["quorum_reason"] == "complete"
     # listings at 0, 0.05, 0.15, 0.35 (sees both), + grace 0.05: well before the next timed listing
@@ -337,8 +337,8 @@ def test_waiting_members_stagger_their_grace_so_one_selects_for_a_silent_last_de
     results = {}
 
     def wait(m):
-        results[m] = pool.barrier(paths, 1, cfg, m, _like(paths), quorum=3, timeout=30,
-                                  liveness=pool.Liveness(paths, 60), poll_max=0.01)
+        results[m] = barrier.barrier(paths, 1, cfg, m, _like(paths), quorum=3, timeout=30,
+                                  liveness=heartbeat.Liveness(paths, 60), poll_max=0.01)
 
     threads = [threading.Thread(target=wait, args=(m,)) for m in (0, 1)]
     for t in threads:
@@ -465,7 +465,10 @@ def test_selection_is_a_pure_function_of_the_files(tmp_path):
     for m, r in [(2, 4.0), (0, 7.0), (1, 7.5)]:  # written in another order than member order
         _deposit(paths, 1, m, r, parent=7.2)
     prev = pool.read_selected(paths, 0)
-    picks = [pool.select(paths, 1, cfg, _like(paths), {0, 1, 2}, "complete", prev) for _ in range(3)]
+    picks = []
+    for _ in range(3):
+        pool._parsed.clear()  # each pick reads and parses the files anew, none from the agent cache
+        picks.append(pool.select(paths, 1, cfg, _like(paths), {0, 1, 2}, "complete", prev))
     assert picks[0] == picks[1] == picks[2] and picks[0]["member"] == 1
 
 

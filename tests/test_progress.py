@@ -13,6 +13,7 @@ import time
 import pytest
 
 from rl_pool import claim, fsutil, pool, progress, status
+from rl_pool.heartbeat import HOST
 
 from .conftest import ROOT, SHORT
 from .helpers import make_pool
@@ -70,7 +71,7 @@ def fake_pool(root, returns_by_iteration, pool_size=2, **kw):
 
 def heartbeat(paths, m, state, iteration, target=20, last_return=None, **extra):
     fsutil.write_json(paths.heartbeat(m), _sign(paths, {
-        "member": m, "pid": os.getpid(), "host": pool.HOST, "beat": 1, "state": state, "iteration": iteration,
+        "member": m, "pid": os.getpid(), "host": HOST, "beat": 1, "state": state, "iteration": iteration,
         "target": target, "learning_rate": 0.01 * 10 ** m, "last_return": last_return, "time": time.time(),
         **extra}))
 

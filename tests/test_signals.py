@@ -6,7 +6,7 @@ import time
 
 import pytest
 
-from rl_pool import pool
+from rl_pool import barrier, heartbeat
 from rl_pool.errors import SignalLatch, Stopped
 
 from .test_pool_protocol import _deposit, _like, make_pool
@@ -61,8 +61,8 @@ def test_a_waiting_member_stops_at_its_next_poll_when_the_signal_was_lost(tmp_pa
         signal.signal(signal.SIGALRM, lambda *a: _lose_a_signal_in_a_finaliser())
         t0 = time.monotonic()
         with pytest.raises(Stopped):
-            pool.barrier(paths, 1, cfg, 0, _like(paths), quorum=2, timeout=60,
-                         liveness=pool.Liveness(paths, 60), poll_max=0.01, check=latch.check)
+            barrier.barrier(paths, 1, cfg, 0, _like(paths), quorum=2, timeout=60,
+                         liveness=heartbeat.Liveness(paths, 60), poll_max=0.01, check=latch.check)
         assert 0.2 <= time.monotonic() - t0 < 1.0 and lost == [Stopped]
     finally:
         signal.signal(signal.SIGALRM, signal.SIG_DFL)

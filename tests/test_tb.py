@@ -154,8 +154,7 @@ def test_a_real_pool_writes_event_files_that_match_its_history(tmp_path):
     d = tmp_path / "real"
     rl_pool("launch", "--pool-dir", d, "--pool-size", 2, "--iterations", 3, *SHORT, "--quiet", check=0)
     paths = pool.Paths(d)
-    if not os.path.isdir(tb.tb_dir(paths)):
-        pytest.skip("rl_pool/member.py does not call rl_pool.tb yet")
+    assert os.path.isdir(tb.tb_dir(paths)), "a pool run writes TensorBoard event files"
     hist = status.status(paths.root)["history"]
     assert [s for s, _ in scalars(tb.pool_run(paths))["return/eval"]] == [h["iteration"] for h in hist]
     _check_against_history(paths)
