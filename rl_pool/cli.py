@@ -198,7 +198,7 @@ def build_parser() -> argparse.ArgumentParser:
     t.add_argument("--pool-dir", required=True, help="the shared pool directory")
     t.add_argument("--quiet", action="store_true", help="log to the pool's log file only, not stderr")
     t.add_argument("--preset", default=None, choices=_preset_names(),
-                   help="named settings for a task (README: Presets); explicit options win")
+                   help="named settings for a task (docs/usage.md: Presets); explicit options win")
     _add_dataclass_options(t, PoolConfig)
     _add_dataclass_options(t, MemberConfig)
     t.set_defaults(func=cmd_train)
@@ -213,7 +213,7 @@ def build_parser() -> argparse.ArgumentParser:
                     help="seconds between progress lines when stdout is not a terminal (default 10; "
                          "on a terminal the view is redrawn in place)")
     la.add_argument("--preset", default=None, choices=_preset_names(),
-                    help="named settings for a task, learning rates included (README: Presets)")
+                    help="named settings for a task, learning rates included (docs/usage.md: Presets)")
     _add_dataclass_options(la, PoolConfig)
     _add_dataclass_options(la, MemberConfig, skip=("member",))
     la.set_defaults(func=cmd_launch)

@@ -1,6 +1,6 @@
 """``rl-pool doctor DIR [--peer]``: can a pool live on the filesystem that holds DIR?
 
-A pool needs three things from its filesystem (DESIGN.md §10, docs/cluster.md):
+A pool needs three things from its filesystem (docs/cluster.md):
 
 1. atomic replace: ``rename(2)`` of a complete temp file over a name;
 2. an exclusive create-once that holds across clients: rl-pool decides with a

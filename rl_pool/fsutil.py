@@ -6,7 +6,7 @@ and on NFS). Create-once decisions live in :mod:`rl_pool.claim`. A write
 that fails (full disk, read-only filesystem) removes its temp file and raises
 with the real name as ``filename``; nothing half written ever has a real name.
 
-Nothing read from a pool is trusted (DESIGN.md §8). Every read here:
+Nothing read from a pool is trusted (docs/security.md). Every read here:
 
 * opens ``O_NONBLOCK`` (a FIFO cannot make it wait) and ``O_NOFOLLOW``, after
   an ``lstat`` that refuses anything but a regular file (a device is never

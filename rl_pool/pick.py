@@ -2,11 +2,9 @@
 
 ``best.npz`` is the selected agent with the highest mean evaluation return on
 its own iteration's episodes. Those episodes change every iteration, so over
-hundreds of iterations the highest mean is partly the luck of an easy draw:
-on Reacher the return depends mostly on where the target lands: in the last
-300 iterations of results/reacher-v5/ (the parent kept in 234 of them) the
-selected agent scored from -7.1 to -3.1 on its iteration's 20 episodes, and
-``best.npz`` (-3.07 on its own) re-scores at -5.9 on 50 fresh ones. ``pick`` runs candidate agents on one shared
+hundreds of iterations the highest mean is partly the luck of an easy draw (on
+Reacher the return depends mostly on where the target lands; docs/results.md
+shows by how much). ``pick`` runs candidate agents on one shared
 set of held-out episodes and keeps the one with the highest mean return, so
 every candidate meets the same episodes and an easy draw favours none of them.
 

@@ -1,4 +1,4 @@
-"""Hostile files in a pool (DESIGN.md §8): every read is bounded, never blocks and never follows a link.
+"""Hostile files in a pool: every read is bounded, never blocks and never follows a link.
 
 Unit tests on tmp_path for the bounded reader and the protocol's read sites, the commands'
 one-line refusals, then two real pools: one full of special files under the names the
