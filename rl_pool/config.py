@@ -66,7 +66,7 @@ class PoolConfig:
                                    "later re-score of it as the parent (a lucky first score wears off; with "
                                    "--selection branches a best is re-scored in the iteration after it became "
                                    "the best or was reverted to)", ("first", "mean"), added=True)
-    merge: str = opt("sum", "how the next agent is made from the branches: the best one alone (none), or "
+    merge: str = opt("none", "how the next agent is made from the branches: the best one alone (none), or "
                             "the parent plus the rank-weighted mean of the updates of every branch that "
                             "beat it (mean), or that mean times the number of such branches (sum)",
                      ("none", "mean", "sum"), added=True, before="none")

@@ -38,7 +38,7 @@ def history(d):
     return out
 
 
-def run_pool(d, lrs=(0.003, 0.03), extra=("--lr-adapt", 2, "--seed", 3), iters=ITERS):
+def run_pool(d, lrs=(0.003, 0.03), extra=("--lr-adapt", 2, "--seed", 3, "--merge", "sum"), iters=ITERS):
     procs = [spawn("train", "--pool-dir", d, "--pool-size", 2, "--member", m, "--learning-rate", lr,
                    "--iterations", iters, *SHORT, "--quiet", *extra) for m, lr in enumerate(lrs)]
     for p in procs:
@@ -114,7 +114,7 @@ def test_same_settings_twice_give_the_same_history(reference, tmp_path):
 def test_kill_and_restart_reproduces_the_uninterrupted_history(reference, tmp_path, sig, state):
     _, hist = reference
     d = tmp_path / "killed"
-    args = ["--pool-size", 2, "--iterations", ITERS, *SHORT, "--quiet", "--lr-adapt", 2, "--seed", 3]
+    args = ["--pool-size", 2, "--iterations", ITERS, *SHORT, "--quiet", "--lr-adapt", 2, "--seed", 3, "--merge", "sum"]
     m0 = spawn("train", "--pool-dir", d, "--member", 0, "--learning-rate", 0.003, *args)
     m1 = spawn("train", "--pool-dir", d, "--member", 1, "--learning-rate", 0.03, *args)
     hb = d / "members/member-001.json"
@@ -191,7 +191,7 @@ def test_in_a_larger_pool_three_members_in_turn_re_score_the_parent(tmp_path):
     d = tmp_path / "four"
     n, iters = 4, 4
     procs = [spawn("train", "--pool-dir", d, "--pool-size", n, "--member", m, "--learning-rate", 0.05,
-                   "--iterations", iters, *SHORT, "--quiet") for m in range(n)]
+                   "--iterations", iters, *SHORT, "--quiet", "--merge", "sum") for m in range(n)]
     for p in procs:
         _, err = p.communicate(timeout=240)
         assert p.returncode == 0, err
