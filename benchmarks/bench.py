@@ -1,5 +1,6 @@
 """Benchmarks that print figures (not timed tests):
-``python -m rl_pool.bench {throughput,scaling,evaluate,protocol,signing,simd}``.
+``python benchmarks/bench.py {throughput,scaling,evaluate,protocol,signing,simd}`` (outside the
+installed package: it needs rl-pool installed, e.g. by ``shell/setup.sh``).
 
 All figures of one run come from the same machine at the same time; compare
 them as ratios, since absolute times on a shared machine are noisy.
@@ -21,8 +22,8 @@ import sys
 import tempfile
 import time
 
-from . import fsutil
-from .threads import PORTABLE_SIMD, cap_threads, capped_environ, cpu_runs_v3
+from rl_pool import fsutil
+from rl_pool.threads import PORTABLE_SIMD, cap_threads, capped_environ, cpu_runs_v3
 
 
 def _plain_loop(env_id: str, steps: int, unwrapped: bool, constant: bool = False) -> float:
@@ -52,9 +53,9 @@ def _plain_loop(env_id: str, steps: int, unwrapped: bool, constant: bool = False
 
 def _member_setup(env_id: str, kind: str, hidden: str) -> dict:
     """A member ready to train (its first iteration done: JIT compiled, envs made)."""
-    from . import envs, learner, trainer
-    from .config import PoolConfig
-    from .member import make_initial
+    from rl_pool import envs, learner, trainer
+    from rl_pool.config import PoolConfig
+    from rl_pool.member import make_initial
 
     learner.enable_compilation_cache()
     cfg = PoolConfig(env=env_id, policy=kind, hidden=hidden).validate()
@@ -68,7 +69,7 @@ def _member_setup(env_id: str, kind: str, hidden: str) -> dict:
 
 def _member_rate(su: dict, steps: int, iteration: int) -> float:
     """Training steps per second of the member in ``su`` over at least ``steps`` env steps."""
-    from . import trainer
+    from rl_pool import trainer
 
     done = secs = 0.0
     while done < steps:
@@ -134,7 +135,7 @@ def simd(args) -> None:
         rates = {m: [] for m in modes}
         for _ in range(args.repeats):
             for mode, environ in modes.items():
-                proc = subprocess.run([sys.executable, "-m", "rl_pool.bench", "_rate", env_id, kind or "linear",
+                proc = subprocess.run([sys.executable, os.path.abspath(__file__), "_rate", env_id, kind or "linear",
                                        args.hidden, str(args.steps)], env=environ, capture_output=True, text=True)
                 if proc.returncode:
                     sys.exit(f"bench simd: the {mode} child failed:\n{proc.stderr[-2000:]}")
@@ -147,7 +148,7 @@ def simd(args) -> None:
 
 
 def _rate(args) -> None:
-    from .versions import simd as simd_level
+    from rl_pool.versions import simd as simd_level
 
     su = _member_setup(args.env, args.kind, args.hidden)
     print(json.dumps({"rate": _member_rate(su, args.steps, 2), "simd": simd_level(os.environ)}))
@@ -161,8 +162,8 @@ def _replay_reference(su: dict, repeats: int) -> tuple[float, float]:
     than a still or randomly twitching one)."""
     import numpy as np
 
-    from .policy import to_action
-    from .rollout import run_episodes
+    from rl_pool.policy import to_action
+    from rl_pool.rollout import run_episodes
 
     agent, cfg, env_list = su["agent"], su["cfg"], su["envs"]
     seeds = list(range(1_000_000, 1_000_000 + cfg.batch_episodes))
@@ -196,7 +197,7 @@ def _run_pool(root: str, n: int, iterations: int, extra: list[str]) -> dict:
         if p.wait() != 0:
             raise SystemExit(f"member exited with {p.returncode}; see {root}/logs")
     wall = time.time() - t0
-    from . import pool
+    from rl_pool import pool
 
     paths = pool.Paths(root)
     latencies, wait_share, first_sel, last_sel = [], [], None, None
@@ -245,7 +246,7 @@ def scaling(args) -> None:
 
 def evaluation(args) -> None:
     """``rl-pool evaluate`` on 1 worker vs W spawned workers, start-up included."""
-    from .evaluate import evaluate_bytes, resolve_agent
+    from rl_pool.evaluate import evaluate_bytes, resolve_agent
 
     path, data = resolve_agent(args.agent)
     one = evaluate_bytes(data, args.episodes, workers=1)
@@ -355,7 +356,7 @@ class _FsCounter:
 
 
 def _member(args) -> None:
-    """One member under :class:`_FsCounter` (``python -m rl_pool.bench _member OUT -- train ...``)."""
+    """One member under :class:`_FsCounter` (``python benchmarks/bench.py _member OUT -- train ...``)."""
     import atexit
 
     rest = args.rest[1:] if args.rest[:1] == ["--"] else args.rest
@@ -370,7 +371,7 @@ def _member(args) -> None:
         os.replace(args.out + ".tmp", args.out)
 
     atexit.register(dump)
-    from .cli import main as cli_main
+    from rl_pool.cli import main as cli_main
 
     sys.exit(cli_main(rest))
 
@@ -404,7 +405,7 @@ def _protocol_pool(n: int, dirs: list[str], iterations: int, warmup: int, extra:
     roots = [os.path.join(d, name) for d in dirs]
     counts = tempfile.mkdtemp(prefix="rl-pool-counts-")
     try:
-        _run_members(n, roots, iterations, extra, lambda m: [sys.executable, "-m", "rl_pool.bench", "_member",
+        _run_members(n, roots, iterations, extra, lambda m: [sys.executable, os.path.abspath(__file__), "_member",
                                                              os.path.join(counts, f"{m}.json"), "--"])
         per_kind = {k: [] for k in KINDS}
         secs, cpu = [], []
@@ -427,7 +428,7 @@ def _protocol_pool(n: int, dirs: list[str], iterations: int, warmup: int, extra:
 def _plain_pool(n: int, dirs: list[str], iterations: int, warmup: int, extra: list[str]) -> float:
     """ms per iteration of the same pool with nothing counted: members run as ``rl-pool train``;
     the mean gap between the decisions of iterations ``warmup`` and ``iterations``."""
-    from . import pool as pool_mod
+    from rl_pool import pool as pool_mod
 
     name = f"bench-plain-{n}-{os.getpid()}-{time.time_ns() % 10**6}"
     roots = [os.path.join(d, name) for d in dirs]
@@ -487,7 +488,7 @@ def signing(args) -> None:
     import json as _json
     import secrets
 
-    from .keys import Key
+    from rl_pool.keys import Key
 
     key = Key(secrets.token_bytes(32))
     deposit = {"iteration": 123, "member": 1, "agent_sha256": "ab" * 32, "eval_return": 357.25,
@@ -526,7 +527,7 @@ def signing(args) -> None:
 
 def main(argv=None) -> None:
     cap_threads()
-    p = argparse.ArgumentParser(prog="python -m rl_pool.bench")
+    p = argparse.ArgumentParser(prog="python benchmarks/bench.py")
     sub = p.add_subparsers(dest="what", required=True)
     t = sub.add_parser("throughput")
     t.add_argument("--env", default="Swimmer-v5")
