@@ -1,5 +1,5 @@
 """The barrier: wait for an iteration's deposits, then select, or adopt the selection already made
-(``docs/protocol.md``: "Barrier")."""
+(``docs/protocol.md``: "One iteration", step 4)."""
 
 from __future__ import annotations
 

@@ -1,5 +1,6 @@
 """Heartbeats: each member's ``members/member-III.json``, rewritten while it runs, and how the
-others judge from it whether a missing member is still coming (``docs/protocol.md``: "Barrier")."""
+others judge from it whether a missing member is still coming (``docs/protocol.md``: "One
+iteration", step 4)."""
 
 from __future__ import annotations
 

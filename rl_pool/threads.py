@@ -13,7 +13,7 @@ numpy's dispatch and XLA's code generation at x86-64-v3 (AVX2 and FMA, which
 x86 machines of the last decade have) and pinning OpenBLAS to its AVX2
 ("Haswell") kernels makes every such CPU compute the same bits (measured: 40
 of 40 HalfCheetah iterations made on an AVX2 machine replayed exactly on an
-AVX-512 one; README, "The same numbers on another machine"). ``RL_POOL_NATIVE_SIMD=1``
+AVX-512 one; docs/reproducibility.md). ``RL_POOL_NATIVE_SIMD=1``
 lets them use all of the CPU; a value of your own for any of these variables is
 kept; a CPU without AVX2 runs natively.
 

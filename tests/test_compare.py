@@ -27,7 +27,7 @@ def test_committed_seeds_give_the_readme_figures(tmp_path):
     out = tmp_path / "seeds.png"
     p = rl_pool("compare", *SEEDS, "--threshold", 350, "--at", "5,10,20", "--out", out, check=0)
     rows = {ln.split("  ")[0].strip(): ln.split() for ln in p.stdout.splitlines()}
-    # README, Results: time to 350 of seeds 0, 1, 2 = 73, 39, 49 s; best at 5/10/20 min; env steps to 350
+    # docs/results.md: time to 350 of seeds 0, 1, 2 = 73, 39, 49 s; best at 5/10/20 min; env steps to 350
     assert rows["seeds/history-seed0"][4:] == ["361.2", "361.2", "362.0", "73", "1.24"]
     assert rows["seeds/history-seed1"][4:] == ["359.8", "361.2", "361.6", "39", "0.78"]
     assert rows["seeds/history-seed2"][4:] == ["359.6", "362.9", "362.9", "49", "0.92"]
