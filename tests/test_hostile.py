@@ -462,7 +462,7 @@ def test_random_sigkills_and_restarts_lose_nothing(tmp_path):
     hist = run_pool(tmp_path / "ref", iters=CHAOS_ITERS)
     d = tmp_path / "chaos"
     rng = random.Random(9)
-    args = ["--pool-size", 2, "--iterations", CHAOS_ITERS, *SHORT, "--quiet", "--lr-adapt", 2]
+    args = ["--pool-size", 2, "--iterations", CHAOS_ITERS, *SHORT, "--quiet", "--lr-adapt", 2, "--seed", 3, "--merge", "sum"]
     lrs = (0.003, 0.03)
     paths = pool.Paths(d)
     kills = []

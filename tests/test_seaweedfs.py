@@ -175,7 +175,7 @@ def test_kill_and_restart_across_mounts_replays_the_local_disk_history(seaweed, 
 
     reference = run_pool(tmp_path / "local")
     a, b = _same_dir(seaweed, "killed")
-    args = ["--pool-size", 2, "--iterations", ITERS, *SHORT, "--quiet", "--lr-adapt", 2,
+    args = ["--pool-size", 2, "--iterations", ITERS, *SHORT, "--quiet", "--lr-adapt", 2, "--seed", 3, "--merge", "sum",
             "--heartbeat-timeout", 300, "--barrier-timeout", 300]
     m0 = spawn("train", "--pool-dir", a, "--member", 0, "--learning-rate", 0.003, *args)
     m1 = spawn("train", "--pool-dir", b, "--member", 1, "--learning-rate", 0.03, *args)
