@@ -68,8 +68,11 @@ class PoolConfig:
                                    "the best or was reverted to)", ("first", "mean"), added=True)
     merge: str = opt("none", "how the next agent is made from the branches: the best one alone (none), or "
                             "the parent plus the rank-weighted mean of the updates of every branch that "
-                            "beat it (mean), or that mean times the number of such branches (sum)",
-                     ("none", "mean", "sum"), added=True, before="none")
+                            "beat it (mean), or that mean times the number of such branches (sum), or "
+                            "times a scale that doubles after a merge that beat the best branch of its "
+                            "iteration and halves after one that did not, between 1 and that number "
+                            "(adaptive)",
+                     ("none", "mean", "sum", "adaptive"), added=True, before="none")
     seed: int = opt(0, "root seed; every random draw derives from (seed, member, iteration)")
 
     @property

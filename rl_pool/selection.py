@@ -12,7 +12,7 @@ Winners:
 * ``branch``: the best valid deposit (ties to the lowest member);
 * ``parent``: the agent the iteration started from, re-scored on the same
   evaluation episodes, beat every branch (``--selection parent``);
-* ``merge``: with ``--merge mean|sum``, two or more branches beat the parent
+* ``merge``: with ``--merge mean|sum|adaptive``, two or more branches beat the parent
   (and the fallback): the next agent is the parent plus a rank-weighted
   combination of their updates (:mod:`rl_pool.merge`); it is scored in the next
   iteration, as the parent, beside the best agent this iteration evaluated
@@ -140,11 +140,38 @@ def merge_weights(k: int) -> list[float]:
     return [(k - r) / total for r in range(k)]
 
 
-def merge_scale(kind: str, k: int) -> float:
+def merge_scale(kind: str, k: int, adaptive: float = 1.0) -> float:
     """How far a merge of ``k`` branches steps, in units of their weighted mean update: ``mean`` 1
     (a data-parallel batch: less noise, the same step), ``sum`` ``k`` (the linear scaling rule:
-    k branches' worth of progress in one step)."""
-    return float(k) if kind == "sum" else 1.0
+    k branches' worth of progress in one step), ``adaptive`` the pool's current scale
+    (:func:`next_scale`) capped at ``k``."""
+    if kind == "sum":
+        return float(k)
+    if kind == "adaptive":
+        return float(min(max(adaptive, 1.0), k))
+    return 1.0
+
+
+#: The adaptive merge's scale is multiplied by this after a merge that held its ground and divided
+#: by it after one that did not: a trust region, as the 1/5 success rule of evolution strategies.
+SCALE_STEP = 2.0
+
+
+def carried_scale(previous: dict, pool_size: int) -> float:
+    """The adaptive scale the previous selection carries (1 for a pool's first selections)."""
+    c = previous.get("merge_scale")
+    return float(min(max(c, 1.0), pool_size)) if finite(c) else 1.0
+
+
+def next_scale(previous: dict, parent: float | None, fallback: float | None, pool_size: int) -> float:
+    """The adaptive scale after the verdict on the previous iteration's merge: that merge (re-scored
+    now as the ``parent``) against its ``fallback`` (the best branch of its iteration, re-scored on
+    the same episodes). At least as good: the scale doubles; worse: it halves; no merge or no
+    verdict: it stays. It stays within 1 (the mean update) and the pool size."""
+    c = carried_scale(previous, pool_size)
+    if previous.get("winner") == "merge" and parent is not None and fallback is not None:
+        c = c * SCALE_STEP if parent >= fallback else c / SCALE_STEP
+    return float(min(max(c, 1.0), pool_size))
 
 
 def decide(cfg: PoolConfig, i: int, previous: dict, reports: list[dict], skipped: list[dict],
@@ -208,6 +235,8 @@ def decide(cfg: PoolConfig, i: int, previous: dict, reports: list[dict], skipped
                 "agent": deposit_rel(i, c["member"]), "agent_sha256": c["agent_sha256"]}
 
     needs: list[int] = []
+    if cfg.merge == "adaptive":
+        out["merge_scale"] = carried_scale(previous, cfg.pool_size)
     if not considered:
         out |= keep_parent | {"winner": "carried", "carried_from": previous["iteration"]}
     elif cfg.merge != "none" and parent_eps is None:
@@ -251,6 +280,9 @@ def _merge_or_pick(cfg: PoolConfig, out: dict, previous: dict, considered: list[
             out["fallback"] = {"eval_return": ret, "score": score, "agent_sha256": fb["agent_sha256"]}
             olds.append((score, ret, {"winner": "fallback", "member": None, "agent": fb["agent"],
                                       "agent_sha256": fb["agent_sha256"], "eval_return": ret, "score": score}))
+    if cfg.merge == "adaptive":
+        out["merge_scale"] = next_scale(previous, parent[1] if parent else None, out.get("fallback", {}).get("score"),
+                                        cfg.pool_size)
     if olds:
         bar = max(s for s, _, _ in olds)
         chosen = [c for c in ranked if c["score"] >= bar]
@@ -270,7 +302,7 @@ def _merge_or_pick(cfg: PoolConfig, out: dict, previous: dict, considered: list[
     out |= {"winner": "merge", "member": None, "eval_return": best["eval_return"], "score": best["score"],
             "agent": None, "agent_sha256": None,
             "merge": {"kind": cfg.merge, "members": [c["member"] for c in chosen], "weights": weights,
-                      "scale": merge_scale(cfg.merge, len(chosen)),
+                      "scale": merge_scale(cfg.merge, len(chosen), out.get("merge_scale", 1.0)),
                       "statistics_from": [c["member"] for c in considered]},
             "evaluated": evaluated}
     return [c["member"] for c in considered]

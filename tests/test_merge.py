@@ -181,6 +181,49 @@ def test_a_revert_drops_the_merge():
     assert out["agent_sha256"] == "b" * 64
 
 
+# ---------------------------------------------------------------- the adaptive scale, as a table
+SCALE_CASES = [
+    # (name, previous, [(member, return, parent report, fallback report)], carried scale, merge scale)
+    ("a pool's first merge steps one mean update", PREVIOUS,
+     [(0, 5.0, 4.0, None), (1, 7.0, None, None), (2, 6.0, None, None)], 1.0, 1.0),
+    ("the merge beat its fallback: the scale doubles", AFTER_MERGE | {"merge_scale": 2.0},
+     [(0, 5.0, 4.0, 3.0), (1, 7.0, None, None), (2, 6.0, None, None)], 4.0, 3.0),
+    ("a tie with the fallback counts as holding", AFTER_MERGE | {"merge_scale": 1.0},
+     [(0, 5.0, 4.0, 4.0), (1, 7.0, None, None), (2, 6.0, None, None)], 2.0, 2.0),
+    ("the merge lost to its fallback: the scale halves", AFTER_MERGE | {"merge_scale": 4.0},
+     [(0, 5.0, 4.0, 4.5), (1, 7.0, None, None), (2, 6.0, None, None)], 2.0, 2.0),
+    ("never below the mean update", AFTER_MERGE | {"merge_scale": 1.0},
+     [(0, 5.0, 4.0, 4.5), (1, 7.0, None, None), (2, 6.0, None, None)], 1.0, 1.0),
+    ("never above the pool size", AFTER_MERGE | {"merge_scale": 4.0},
+     [(0, 5.0, 4.0, 3.0), (1, 7.0, None, None), (2, 6.0, None, None), (3, 8.0, None, None)], 4.0, 4.0),
+    ("no verdict without the fallback's re-score: it stays", AFTER_MERGE | {"merge_scale": 2.0},
+     [(0, 5.0, 4.0, None), (1, 7.0, None, None), (2, 6.0, None, None)], 2.0, 2.0),
+    ("after a branch won there is no verdict: it stays", PREVIOUS | {"winner": "branch", "merge_scale": 2.0},
+     [(0, 5.0, 4.0, None), (1, 7.0, None, None), (2, 6.0, None, None)], 2.0, 2.0),
+    ("a garbled carried scale starts again at 1", PREVIOUS | {"merge_scale": float("nan")},
+     [(0, 5.0, 4.0, None), (1, 7.0, None, None), (2, 6.0, None, None)], 1.0, 1.0),
+]
+
+
+@pytest.mark.parametrize("name,previous,rows,carried,scale", SCALE_CASES, ids=[c[0] for c in SCALE_CASES])
+def test_the_adaptive_scale(name, previous, rows, carried, scale):
+    out, _ = selection.decide(_cfg("adaptive", n=4), 1, previous, [_report(*r) for r in rows], [], "complete")
+    assert out["merge_scale"] == carried
+    assert out["winner"] == "merge" and out["merge"]["kind"] == "adaptive"
+    # capped at the number of branches merged: those at or above the parent and the fallback
+    assert out["merge"]["scale"] == scale
+
+
+def test_the_adaptive_scale_is_carried_when_nothing_is_merged():
+    previous = PREVIOUS | {"merge_scale": 4.0}
+    out, _ = selection.decide(_cfg("adaptive", n=4), 1, previous, [_report(0, 3.0, 4.0), _report(1, 2.0)], [],
+                              "complete")
+    assert out["winner"] == "parent" and out["merge_scale"] == 4.0
+    out, _ = selection.decide(_cfg("adaptive", n=4), 1, previous, [], [{"member": 0, "reason": "missing"}],
+                              "quorum")
+    assert out["winner"] == "carried" and out["merge_scale"] == 4.0
+
+
 # ---------------------------------------------------------------- the store
 def _deposits(paths, n, returns, parent_return, seed0=10):
     prev = pool.read_selected(paths, 0)
