@@ -228,7 +228,7 @@ def ars_train(env_id: str, hp: dict, workdir: str, seconds: float, cores: int, s
                 checkpoints.append({"fraction": fraction, "mark_seconds": mark, "agent_seconds": None,
                                     "env_steps": 0, "updates": None, "model": None, "vecnormalize": None})
                 print(f"ars: {LABELS[fraction]} of the budget ({mark / 60:.2f} min): no agent yet (set-up "
-                      f"took {snap['seconds']:.0f} s)", file=sys.stderr, flush=True)
+                      f"took {snap['seconds']:.0f} s)", flush=True)
                 return
             vn = self.model.get_vec_normalize_env()
             name = f"ck-{round(fraction * 100)}"
@@ -250,7 +250,7 @@ def ars_train(env_id: str, hp: dict, workdir: str, seconds: float, cores: int, s
                                 "env_steps": snap["steps"], "updates": snap["updates"],
                                 "model": name + ".zip", "vecnormalize": stats})
             print(f"ars: {LABELS[fraction]} of the budget ({mark / 60:.2f} min): update {snap['updates']}, "
-                  f"{snap['steps'] / 1e6:.2f} M env steps", file=sys.stderr, flush=True)
+                  f"{snap['steps'] / 1e6:.2f} M env steps", flush=True)
 
         def _on_training_start(self) -> None:
             self.prev = self._snapshot()
@@ -332,8 +332,10 @@ def run_ars(a, workdir: str) -> dict:
     cmd = [sys.executable, os.path.abspath(__file__), "_ars-train", a.env, d, str(seconds), str(a.cores),
            str(a.seed), repr(t0)]
     with open(log, "w") as fh:
-        # stderr stays on the terminal: the lines at each mark (and any warning) show as it runs
-        proc = subprocess.Popen(cmd, stdout=fh, start_new_session=True, env=_env_with_one_thread())
+        # its lines at each mark (stdout) show as it runs; warnings and errors (stderr) go to the log
+        # cwd: MuJoCo appends its warnings to MUJOCO_LOG.TXT in the working directory
+        proc = subprocess.Popen(cmd, stdout=sys.stderr, stderr=fh, start_new_session=True, cwd=d,
+                                env=_env_with_one_thread())
         # it stops itself after the first update past the budget; this is only a guard
         try:
             proc.wait(timeout=seconds + max(300.0, seconds))
@@ -459,7 +461,7 @@ def rescore(a, workdir: str, runs: dict) -> None:
         spec = json.dumps([[c["model"], c["vecnormalize"]] for c in cks])
         res = subprocess.run([sys.executable, os.path.abspath(__file__), "_ars-score", a.env, d, spec,
                               str(a.episodes), str(a.eval_seed)], capture_output=True, text=True,
-                             env=_env_with_one_thread())
+                             env=_env_with_one_thread(), cwd=d)
         if res.returncode != 0:
             runs["ars"]["error"] = "re-score failed: " + res.stderr.strip()[-400:]
         else:
@@ -532,7 +534,8 @@ def main(argv=None) -> int:
     workdir = os.path.abspath(a.workdir or tempfile.mkdtemp(prefix="rl-pool-peers-"))
     if os.path.isdir(os.path.join(workdir, "rl-pool", "pool")) and "rl-pool" in a.order:
         shutil.rmtree(os.path.join(workdir, "rl-pool", "pool"))  # a launch would resume it, not start anew
-    print(f"# {a.env}: {', '.join(a.order)} one after the other, {a.minutes:g} min each on {a.cores} cores; "
+    how = "one after the other, " if len(a.order) > 1 else ""
+    print(f"# {a.env}: {', '.join(a.order)} {how}{a.minutes:g} min each on {a.cores} cores; "
           f"re-scored on {a.episodes} fresh episodes (reset seeds {a.eval_seed}+k); runs in {workdir}",
           file=sys.stderr, flush=True)
     runs = {}

@@ -1,0 +1,77 @@
+"""benchmarks/peers.py's command line, without sb3-contrib or torch (the ``peers`` extra is not installed here)."""
+
+import importlib.util
+import os
+import subprocess
+import sys
+
+import pytest
+
+from rl_pool.presets import PRESETS
+
+SCRIPT = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "benchmarks", "peers.py")
+
+
+@pytest.fixture(scope="module")
+def peers():
+    spec = importlib.util.spec_from_file_location("peers_benchmark", SCRIPT)
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
+
+
+def test_every_task_is_a_preset_on_the_same_env(peers):
+    assert set(peers.TASKS) == {"swimmer", "hopper", "halfcheetah", "walker2d", "ant"}
+    for preset, (env_id, hp) in peers.TASKS.items():
+        assert PRESETS[preset]["env"] == env_id
+        assert hp is peers.ZOO_ARS[env_id.split("-")[0]]
+
+
+def test_the_zoo_settings(peers):
+    # rl-baselines3-zoo hyperparams/ars.yml, HalfCheetah-v4 and Hopper-v4
+    assert peers.ZOO_ARS["HalfCheetah"] == {"n_delta": 32, "n_top": 4, "learning_rate": 0.02, "delta_std": 0.03,
+                                            "alive_bonus_offset": 0.0, "normalize": True}
+    assert peers.ZOO_ARS["Hopper"]["alive_bonus_offset"] == -1.0
+    assert peers.ZOO_ARS["Swimmer"]["normalize"] is False
+
+
+def test_task_by_preset_or_env_id(peers, monkeypatch):
+    monkeypatch.setattr(peers, "have_sb3_contrib", lambda: True)
+    a = peers.parse(["--task", "HalfCheetah-v5", "--minutes", "1", "--", "--eval-episodes", "5"])
+    assert (a.task, a.env, a.cores, a.episodes, a.order) == ("halfcheetah", "HalfCheetah-v5", 2, 20, ["ars", "rl-pool"])
+    assert a.options == ["--eval-episodes", "5"]
+    assert peers.parse(["--task", "walker2d"]).env == "Walker2d-v5"
+
+
+@pytest.mark.parametrize("argv, line", [
+    (["--task", "reacher"], "peers: unknown task 'reacher' (have swimmer (Swimmer-v5), "),
+    (["--minutes", "0"], "peers: --minutes must be > 0, got 0.0"),
+    (["--cores", "0"], "peers: --cores must be >= 1, got 0"),
+    (["--episodes", "-1"], "peers: --episodes must be >= 1, got -1"),
+    (["--order", "ars,ppo"], "peers: --order takes ars, rl-pool or both"),
+    (["--minutes", "soon"], "peers: argument --minutes: invalid float value: 'soon'"),
+])
+def test_bad_input_is_one_line(peers, monkeypatch, capsys, argv, line):
+    monkeypatch.setattr(peers, "have_sb3_contrib", lambda: True)
+    assert peers.main(argv) == 2
+    out, err = capsys.readouterr()
+    assert out == "" and err.startswith(line) and err.count("\n") == 1
+
+
+def test_missing_sb3_contrib(peers, monkeypatch, capsys):
+    monkeypatch.setattr(peers, "have_sb3_contrib", lambda: False)
+    assert peers.main(["--task", "swimmer", "--minutes", "1"]) == 2
+    assert capsys.readouterr().err == peers.MISSING_SB3 + "\n"
+    # rl-pool alone does not need it
+    assert peers.parse(["--task", "swimmer", "--order", "rl-pool"]).order == ["rl-pool"]
+
+
+def test_the_script_loads_neither_torch_nor_sb3_and_refuses_in_one_line():
+    probe = ("import importlib.util, sys; s = importlib.util.spec_from_file_location('p', sys.argv[1]); "
+             "m = importlib.util.module_from_spec(s); s.loader.exec_module(m); "
+             "print(sorted(k for k in ('torch', 'sb3_contrib', 'stable_baselines3', 'jax') if k in sys.modules))")
+    res = subprocess.run([sys.executable, "-c", probe, SCRIPT], capture_output=True, text=True, check=True)
+    assert res.stdout.strip() == "[]"
+    res = subprocess.run([sys.executable, SCRIPT, "--task", "Humanoid-v5"], capture_output=True, text=True)
+    assert res.returncode == 2 and res.stdout == ""
+    assert res.stderr.startswith("peers: unknown task 'Humanoid-v5'") and res.stderr.count("\n") == 1
