@@ -326,6 +326,8 @@ def run_ars(a, workdir: str) -> dict:
     """The ARS side in a child process; its ``run.json`` (``error`` set if it failed)."""
     d = os.path.join(workdir, "ars")
     os.makedirs(d, exist_ok=True)
+    with contextlib.suppress(FileNotFoundError):
+        os.remove(os.path.join(d, "run.json"))  # an earlier run's
     seconds = a.minutes * 60
     t0 = time.time()
     log = os.path.join(d, "train.log")
