@@ -53,9 +53,10 @@ def _plain_loop(env_id: str, steps: int, unwrapped: bool, constant: bool = False
 
 def _member_setup(env_id: str, kind: str, hidden: str) -> dict:
     """A member ready to train (its first iteration done: JIT compiled, envs made)."""
-    from rl_pool import envs, learner, trainer
+    from rl_pool.commands.member import make_initial
     from rl_pool.config import PoolConfig
-    from rl_pool.member import make_initial
+    from rl_pool.learning import envs, trainer
+    from rl_pool.maths import learner
 
     learner.enable_compilation_cache()
     cfg = PoolConfig(env=env_id, policy=kind, hidden=hidden).validate()
@@ -69,7 +70,7 @@ def _member_setup(env_id: str, kind: str, hidden: str) -> dict:
 
 def _member_rate(su: dict, steps: int, iteration: int) -> float:
     """Training steps per second of the member in ``su`` over at least ``steps`` env steps."""
-    from rl_pool import trainer
+    from rl_pool.learning import trainer
 
     done = secs = 0.0
     while done < steps:
@@ -162,8 +163,8 @@ def _replay_reference(su: dict, repeats: int) -> tuple[float, float]:
     than a still or randomly twitching one)."""
     import numpy as np
 
-    from rl_pool.policy import to_action
-    from rl_pool.rollout import run_episodes
+    from rl_pool.learning.rollout import run_episodes
+    from rl_pool.maths.policy import to_action
 
     agent, cfg, env_list = su["agent"], su["cfg"], su["envs"]
     seeds = list(range(1_000_000, 1_000_000 + cfg.batch_episodes))
@@ -197,9 +198,9 @@ def _run_pool(root: str, n: int, iterations: int, extra: list[str]) -> dict:
         if p.wait() != 0:
             raise SystemExit(f"member exited with {p.returncode}; see {root}/logs")
     wall = time.time() - t0
-    from rl_pool import pool
+    from rl_pool.protocol import layout
 
-    paths = pool.Paths(root)
+    paths = layout.Paths(root)
     latencies, wait_share, first_sel, last_sel = [], [], None, None
     for i in range(1, iterations + 1):
         deps = [os.stat(paths.deposit_json(i, m)).st_mtime_ns / 1e9 for m in range(n)]
@@ -246,7 +247,7 @@ def scaling(args) -> None:
 
 def evaluation(args) -> None:
     """``rl-pool evaluate`` on 1 worker vs W spawned workers, start-up included."""
-    from rl_pool.evaluate import evaluate_bytes, resolve_agent
+    from rl_pool.commands.evaluate import evaluate_bytes, resolve_agent
 
     path, data = resolve_agent(args.agent)
     one = evaluate_bytes(data, args.episodes, workers=1)
@@ -371,7 +372,7 @@ def _member(args) -> None:
         os.replace(args.out + ".tmp", args.out)
 
     atexit.register(dump)
-    from rl_pool.cli import main as cli_main
+    from rl_pool.commands.cli import main as cli_main
 
     sys.exit(cli_main(rest))
 
@@ -428,7 +429,7 @@ def _protocol_pool(n: int, dirs: list[str], iterations: int, warmup: int, extra:
 def _plain_pool(n: int, dirs: list[str], iterations: int, warmup: int, extra: list[str]) -> float:
     """ms per iteration of the same pool with nothing counted: members run as ``rl-pool train``;
     the mean gap between the decisions of iterations ``warmup`` and ``iterations``."""
-    from rl_pool import pool as pool_mod
+    from rl_pool.protocol import pool as pool_mod
 
     name = f"bench-plain-{n}-{os.getpid()}-{time.time_ns() % 10**6}"
     roots = [os.path.join(d, name) for d in dirs]
@@ -488,7 +489,7 @@ def signing(args) -> None:
     import json as _json
     import secrets
 
-    from rl_pool.keys import Key
+    from rl_pool.protocol.keys import Key
 
     key = Key(secrets.token_bytes(32))
     deposit = {"iteration": 123, "member": 1, "agent_sha256": "ab" * 32, "eval_return": 357.25,

@@ -25,7 +25,7 @@ import time
 
 
 def _progress(pool_dir: str) -> list[dict]:
-    from rl_pool import status
+    from rl_pool.commands import status
 
     try:
         return status.curve(status.status(pool_dir))

@@ -11,7 +11,7 @@ __all__ = ["Agent", "__version__"]
 
 def __getattr__(name):
     if name == "Agent":
-        from .agent import Agent
+        from rl_pool.maths.agent import Agent
 
         return Agent
     raise AttributeError(f"module 'rl_pool' has no attribute {name!r}")

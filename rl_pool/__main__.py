@@ -1,5 +1,5 @@
 import sys
 
-from .cli import main
+from rl_pool.commands.cli import main
 
 sys.exit(main())

@@ -13,10 +13,10 @@ import math
 import re
 from dataclasses import MISSING, asdict, dataclass, field, fields
 
-from .errors import UsageError
+from rl_pool.errors import UsageError
 
 #: 2: policy family (policy/hidden/link), parent in the selection, reward shift.
-PROTOCOL = 3  # 3: create-once decisions in .NAME.once/ (rl_pool.claim)
+PROTOCOL = 3  # 3: create-once decisions in .NAME.once/ (rl_pool.protocol.claim)
 #: Pools that read-only commands (status, plot, evaluate, compare) still read: 2 differs from 3 only
 #: in how create-once files are made, not in what they hold.
 READABLE_PROTOCOLS = (2, 3)
@@ -77,8 +77,8 @@ class PoolConfig:
 
     @property
     def spec(self):
-        """The policy this pool trains (:class:`rl_pool.policy.PolicySpec`)."""
-        from .policy import PolicySpec
+        """The policy this pool trains (:class:`rl_pool.maths.policy.PolicySpec`)."""
+        from rl_pool.maths.policy import PolicySpec
 
         if self.policy != "mlp":
             hidden = ()
@@ -121,7 +121,7 @@ class PoolConfig:
         if not math.isfinite(self.reward_shift):
             raise UsageError(f"--reward-shift must be a finite number, got {self.reward_shift}")
         if self.init_shape:
-            from .policy import init_bias
+            from rl_pool.maths.policy import init_bias
 
             try:
                 init_bias(self.link, self.init_shape)

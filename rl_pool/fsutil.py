@@ -2,7 +2,7 @@
 
 Everything written into a pool is written whole or not at all: a temp file in
 the same directory, flushed and fsynced, then ``os.replace`` (atomic on POSIX
-and on NFS). Create-once decisions live in :mod:`rl_pool.claim`. A write
+and on NFS). Create-once decisions live in :mod:`rl_pool.protocol.claim`. A write
 that fails (full disk, read-only filesystem) removes its temp file and raises
 with the real name as ``filename``; nothing half written ever has a real name.
 
@@ -42,14 +42,14 @@ import time
 import uuid
 from contextlib import contextmanager
 
-from .errors import UnsafeFile
+from rl_pool.errors import UnsafeFile
 
 TMP_MARK = ".tmp-"
 
 #: Cap on a JSON file read from a pool: heartbeats, deposits' metrics and selections are a few KiB.
 JSON_MAX_BYTES = 1 << 20
 #: Cap on an agent file when the pool's shapes are not at hand (``best.npz``, ``evaluate FILE``);
-#: with them, :func:`rl_pool.agent.max_file_bytes` is the cap.
+#: with them, :func:`rl_pool.maths.agent.max_file_bytes` is the cap.
 AGENT_MAX_BYTES = 64 << 20
 _CHUNK = 1 << 20
 
@@ -57,11 +57,16 @@ _CHUNK = 1 << 20
 TRANSIENT = {errno.ESTALE, errno.EIO, errno.EINTR, errno.EAGAIN, errno.ETIMEDOUT}
 
 
+def writer_token(random_hex: int = 8) -> str:
+    """``{host}-{pid}-{random}``: who writes (short host name and process id, so a leftover can be
+    traced to a dead writer, :func:`tmp_owner`) and a random part that makes it unique."""
+    return f"{socket.gethostname().split('.')[0]}-{os.getpid()}-{uuid.uuid4().hex[:random_hex]}"
+
+
 def tmp_name(path: str) -> str:
     """``.{name}.tmp-{host}-{pid}-{random}``: unique, and names its writer (see :func:`tmp_owner`)."""
     d, base = os.path.split(os.fspath(path))
-    host = socket.gethostname().split(".")[0]
-    return os.path.join(d, f".{base}{TMP_MARK}{host}-{os.getpid()}-{uuid.uuid4().hex[:8]}")
+    return os.path.join(d, f".{base}{TMP_MARK}{writer_token()}")
 
 
 def _fsync_dir(d: str) -> None:
@@ -494,3 +499,10 @@ def tmp_owner(name: str) -> tuple[str, int] | None:
         return host, int(pid)
     except ValueError:
         return None
+
+
+def why(exc: Exception) -> str:
+    """A refused or unreadable file's reason, for logs and ``skipped`` entries."""
+    if isinstance(exc, OSError) and exc.strerror:
+        return exc.strerror
+    return f"{type(exc).__name__}: {exc}" if str(exc) else type(exc).__name__

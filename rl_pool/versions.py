@@ -11,7 +11,7 @@ import platform
 import sys
 from importlib import metadata
 
-from . import threads
+from rl_pool import threads
 
 #: Distributions whose versions decide what a pool computes, in display order.
 PACKAGES = ("rl-pool", "numpy", "jax", "jaxlib", "mujoco", "gymnasium")

@@ -8,9 +8,11 @@ import numpy as np
 import pytest
 import scipy.stats
 
-from rl_pool import Agent, envs, policy
-from rl_pool.agent import AgentMeta, max_file_bytes
+from rl_pool import Agent
 from rl_pool.errors import AgentFileError, EnvError
+from rl_pool.learning import envs
+from rl_pool.maths import policy
+from rl_pool.maths.agent import AgentMeta, max_file_bytes
 
 from .helpers import META, Evil, agent
 

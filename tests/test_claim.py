@@ -1,4 +1,4 @@
-"""The create-once decision (rl_pool/claim.py): one winner, complete content, nothing to wedge."""
+"""The create-once decision (rl_pool/protocol/claim.py): one winner, complete content, nothing to wedge."""
 
 import errno
 import json
@@ -7,7 +7,9 @@ import os
 
 import pytest
 
-from rl_pool import claim
+from rl_pool.protocol import claim
+
+from .helpers import racer
 
 
 def test_first_proposal_wins_and_later_ones_get_its_bytes(tmp_path):
@@ -172,28 +174,12 @@ def test_payload_too_large_is_refused_before_anything_is_written(tmp_path):
     assert os.listdir(tmp_path) == []
 
 
-def _racer(root: str, names: int, me: int, barrier, out) -> None:
-    import random
-    import time
-
-    jitter = random.Random(me)
-    results = []
-    for k in range(names):
-        barrier.wait()
-        # Up to 2 ms apart, so that no racer wins every race by always leaving the barrier first
-        # (seen on SeaweedFS: the mount that made the directory won 30 of 30); claims still overlap.
-        time.sleep(jitter.uniform(0, 0.002))
-        data = json.dumps({"racer": me, "name": k}).encode()
-        results.append(claim.create_once(os.path.join(root, f"d{k:03d}.json"), data))
-    out.put((me, results))
-
-
 @pytest.mark.parametrize("racers", [2, 4])
 def test_processes_racing_for_the_same_names_have_exactly_one_winner_each_time(tmp_path, racers):
     names = 60
     ctx = mp.get_context("spawn")
     barrier, out = ctx.Barrier(racers), ctx.Queue()
-    procs = [ctx.Process(target=_racer, args=(str(tmp_path), names, me, barrier, out))
+    procs = [ctx.Process(target=racer, args=(str(tmp_path), names, me, barrier, out))
              for me in range(racers)]
     for p in procs:
         p.start()
@@ -232,7 +218,7 @@ def test_special_things_at_the_plain_name_are_replaced_by_the_decided_copy(tmp_p
 
 # ---------------------------------------------------------------- doctor: the checks behind the decision
 def test_quick_check_finds_nothing_wrong_on_a_local_disk_and_leaves_nothing(tmp_path):
-    from rl_pool import doctor
+    from rl_pool.protocol import doctor
 
     assert doctor.quick_check(tmp_path) == []
     assert os.listdir(tmp_path) == []
@@ -242,7 +228,7 @@ def test_quick_check_refuses_a_filesystem_whose_directory_renames_replace(tmp_pa
     """What an object-store FUSE adapter does: a directory rename is a delete and a copy."""
     import shutil
 
-    from rl_pool import doctor
+    from rl_pool.protocol import doctor
 
     real = os.rename
 
@@ -264,7 +250,7 @@ def test_quick_check_refuses_a_filesystem_whose_directory_renames_replace(tmp_pa
     ({"type": "ext4", "options": "rw"}, None, None),
 ])
 def test_mount_options_that_matter_are_named(fs, problem, note):
-    from rl_pool import doctor
+    from rl_pool.protocol import doctor
 
     problems, notes = doctor.mount_notes(fs)
     assert [p for p in problems if problem in p] if problem else problems == []
@@ -272,7 +258,7 @@ def test_mount_options_that_matter_are_named(fs, problem, note):
 
 
 def _doctor_peer(d: str, out) -> None:
-    from rl_pool import doctor
+    from rl_pool.protocol import doctor
 
     out.put(doctor.peer_race(d, rounds=10, timeout=60, settle=0.05))
 
@@ -295,7 +281,7 @@ def test_doctor_peers_meet_race_and_agree_on_a_local_disk(tmp_path):
 
 
 def test_doctor_command_prints_a_verdict(tmp_path, capsys):
-    from rl_pool import doctor
+    from rl_pool.protocol import doctor
 
     assert doctor.main([str(tmp_path)]) == 0
     out = capsys.readouterr().out

@@ -6,10 +6,10 @@ import struct
 
 import pytest
 
-from rl_pool import compare, status
+from rl_pool.commands import compare, status
 
 from .conftest import ROOT, rl_pool
-from .test_progress import fake_pool, heartbeat
+from .helpers import fake_pool, write_heartbeat
 
 SEEDS = sorted(glob.glob(os.path.join(ROOT, "results", "swimmer-v5", "seeds", "history-seed*.csv")))
 SCREENING = os.path.join(ROOT, "results", "swimmer-v5", "screening")
@@ -54,7 +54,7 @@ def test_pools_differing_only_in_seed_form_one_group(tmp_path):
     b = fake_pool(tmp_path / "b", [[11.0, 9.0], [30.0, 12.0], [31.0, 40.0]], seed=1)
     c = fake_pool(tmp_path / "c", hist, seed=0, gamma=0.99)
     for p in (a, b, c):
-        heartbeat(p, 0, "finished", 3)
+        write_heartbeat(p, 0, "finished", 3)
     groups = compare.group_runs([compare.load(p.root) for p in (a, b, c)])
     assert [len(v) for v in groups.values()] == [2, 1]
     first, second = groups

@@ -2,14 +2,14 @@
 
 import json
 
-import gymnasium as gym
 import numpy as np
 import pytest
 
 from rl_pool import Agent
-from rl_pool.evaluate import EvalWorker, evaluate_bytes
+from rl_pool.commands.evaluate import EvalWorker, evaluate_bytes
 
 from .conftest import SHORT, rl_pool
+from .helpers import reference_episode
 
 
 @pytest.fixture(scope="module")
@@ -19,25 +19,12 @@ def trained(tmp_path_factory):
     return d
 
 
-def _reference_episode(agent, seed):
-    """An independent episode loop on the fully wrapped gymnasium env."""
-    env = gym.make(agent.meta.env, max_episode_steps=agent.meta.max_episode_steps)
-    obs, _ = env.reset(seed=seed)
-    x0 = float(env.unwrapped.data.qpos[0])
-    total, done = 0.0, False
-    while not done:
-        obs, r, term, trunc, _ = env.step(agent.act(obs))
-        total += r
-        done = term or trunc
-    return total, float(env.unwrapped.data.qpos[0]) - x0
-
-
 def test_evaluate_json_matches_a_plain_loop_and_workers_agree(trained):
     one = json.loads(rl_pool("evaluate", trained, "--episodes", 4, "--json", check=0).stdout)
     two = json.loads(rl_pool("evaluate", trained, "--episodes", 4, "--workers", 2, "--json", check=0).stdout)
     assert one["returns"] == two["returns"]  # episode order and values do not depend on workers
     agent = Agent.load(trained / "best.npz")
-    ref = [_reference_episode(agent, 1_000_000 + k)[0] for k in range(4)]
+    ref = [reference_episode(agent, 1_000_000 + k)[0] for k in range(4)]
     np.testing.assert_allclose(one["returns"], ref, rtol=1e-12)
     assert one["episodes"] == 4 and one["mean_return"] == pytest.approx(np.mean(ref))
     assert one["std_return"] == pytest.approx(np.std(ref))
@@ -45,9 +32,9 @@ def test_evaluate_json_matches_a_plain_loop_and_workers_agree(trained):
 
 def test_example_worker_scores_x_distance_under_spawn(trained):
     out = json.loads(rl_pool("evaluate", trained / "best.npz", "--episodes", 3, "--workers", 2,
-                             "--worker", "rl_pool.examples:XDistance", "--json", check=0).stdout)
+                             "--worker", "rl_pool.commands.examples:XDistance", "--json", check=0).stdout)
     agent = Agent.load(trained / "best.npz")
-    ref = [_reference_episode(agent, 1_000_000 + k)[1] for k in range(3)]
+    ref = [reference_episode(agent, 1_000_000 + k)[1] for k in range(3)]
     np.testing.assert_allclose(out["returns"], ref, rtol=1e-12)
 
 

@@ -15,10 +15,10 @@ import time
 
 import pytest
 
-from rl_pool.agent import Agent
+from rl_pool.maths.agent import Agent
 
 from .conftest import SHORT, past_its_deposit, rl_pool, spawn
-from .test_multiprocess import history
+from .helpers import history
 
 pytestmark = pytest.mark.multiprocess
 
@@ -123,7 +123,7 @@ def test_a_restart_writes_the_selected_json_copy_its_winner_could_not(uninterrup
 
 def test_a_read_only_pool_can_be_watched_and_a_member_stops_in_one_line(tmpfs, uninterrupted, tmp_path,
                                                                         capsys):
-    from rl_pool.cli import main
+    from rl_pool.commands.cli import main
 
     src, _ = uninterrupted
     d = tmpfs / "pool"

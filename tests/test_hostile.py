@@ -20,12 +20,12 @@ import time
 
 import pytest
 
-from rl_pool import claim, fsutil, heartbeat, pool
+from rl_pool import fsutil
 from rl_pool.errors import UnsafeFile
+from rl_pool.protocol import claim, deposits, heartbeat, layout, pool
 
 from .conftest import ROOT, SHORT, rl_pool
-from .helpers import agent, make_pool
-from .test_multiprocess import history, run_pool
+from .helpers import agent, history, make_pool, run_pool
 
 #: The random-kill test's own pool length: longer than the shared reference's, so 20 kills spread
 #: over it with room to spare.
@@ -203,49 +203,49 @@ def test_a_symlinked_iteration_directory_is_neither_listed_nor_read_through(tmp_
     paths, _cfg = make_pool(tmp_path / "p", pool_size=2)
     elsewhere = tmp_path / "elsewhere"
     elsewhere.mkdir()
-    good = pool.deposit(pool.Paths(tmp_path / "other"), 1, 0, agent(1), {"eval_return": 5.0})  # a real deposit
+    good = deposits.deposit(layout.Paths(tmp_path / "other"), 1, 0, agent(1), {"eval_return": 5.0})  # a real deposit
     for name in os.listdir(tmp_path / "other/iterations/000001"):
         os.rename(tmp_path / "other/iterations/000001" / name, elsewhere / name)
     (elsewhere / "selected.json").write_text(json.dumps({"iteration": 3, "member": 0, "agent": "x"}))
     os.symlink(elsewhere, paths.iteration(3))
     os.symlink("/dev", paths.iteration(4))
-    assert pool.iterations_on_disk(paths) == [0]
-    assert pool.read_selected(paths, 3) is None and pool.last_selected(paths) == 0
-    assert pool.present(paths, 3, 2) == set()
+    assert deposits.iterations_on_disk(paths) == [0]
+    assert deposits.read_selected(paths, 3) is None and deposits.last_selected(paths) == 0
+    assert deposits.present(paths, 3, 2) == set()
     exc = _refused(lambda: paths.read_json(paths.deposit_json(3, 0)))
     assert "000003, which is a symbolic link" in exc.strerror
     with pytest.raises(ValueError, match="symbolic link"):
-        pool.read_deposit(paths, 3, 0)
+        deposits.read_deposit(paths, 3, 0)
     assert good["eval_return"] == 5.0  # what was refused was a valid deposit: only the link is wrong
     # an iteration "directory" that is a file, and an iterations/ that is a link
     open(paths.iteration(5), "w").close()
-    assert pool.present(paths, 5, 2) == set() and pool.read_selected(paths, 5) is None
+    assert deposits.present(paths, 5, 2) == set() and deposits.read_selected(paths, 5) is None
     os.rename(paths.iterations, tmp_path / "real-iterations")
     os.symlink(tmp_path / "real-iterations", paths.iterations)
     with pytest.raises(UnsafeFile, match="symbolic link"):
-        pool.iterations_on_disk(paths)
+        deposits.iterations_on_disk(paths)
 
 
 def test_hostile_deposits_are_skipped_with_their_reason(tmp_path):
     paths, cfg = make_pool(tmp_path / "p", pool_size=6)
-    like = pool.load_selected_agent(paths, 0)
-    pool.deposit(paths, 1, 0, agent(0), {"eval_return": 1.0})
+    like = deposits.load_selected_agent(paths, 0)
+    deposits.deposit(paths, 1, 0, agent(0), {"eval_return": 1.0})
     # 1: valid metrics, but the agent is a link to a valid agent outside the pool
-    elsewhere = pool.Paths(tmp_path / "q")
+    elsewhere = layout.Paths(tmp_path / "q")
     elsewhere.key = paths.key  # a key holder's valid deposit, only in the wrong place
-    doc = pool.deposit(elsewhere, 1, 1, agent(1), {"eval_return": 9.0})
+    doc = deposits.deposit(elsewhere, 1, 1, agent(1), {"eval_return": 9.0})
     (tmp_path / "p/iterations/000001/member-001.json").write_text(json.dumps(doc))
     os.symlink(tmp_path / "q/iterations/000001/member-001.npz", paths.deposit_npz(1, 1))
     # 2: metrics are a FIFO; 3: a socket; 4: a huge sparse agent; 5: metrics are a directory
     os.mkfifo(paths.deposit_json(1, 2))
     s = make_socket(paths.deposit_json(1, 3))
-    doc = pool.deposit(paths, 1, 4, agent(4), {"eval_return": 9.0})
+    doc = deposits.deposit(paths, 1, 4, agent(4), {"eval_return": 9.0})
     with open(paths.deposit_npz(1, 4), "r+b") as fh:
         fh.truncate(1 << 36)
     os.mkdir(paths.deposit_json(1, 5))
     try:
-        out = _in_time(lambda: pool.select(paths, 1, cfg, like, pool.present(paths, 1, 6), "complete",
-                                           pool.read_selected(paths, 0)))
+        out = _in_time(lambda: pool.select(paths, 1, cfg, like, deposits.present(paths, 1, 6), "complete",
+                                           deposits.read_selected(paths, 0)))
     finally:
         s.close()
     sel = out["value"]
@@ -257,26 +257,26 @@ def test_hostile_deposits_are_skipped_with_their_reason(tmp_path):
 
 def test_special_files_on_create_once_and_replaced_names_are_cleared(tmp_path):
     paths, cfg = make_pool(tmp_path / "p", pool_size=1)
-    like = pool.load_selected_agent(paths, 0)
+    like = deposits.load_selected_agent(paths, 0)
     for i, plant in ((1, os.mkfifo), (2, os.mkdir), (3, lambda p: os.symlink("/dev/zero", p))):
-        pool.deposit(paths, i, 0, agent(i), {"eval_return": float(i)})
+        deposits.deposit(paths, i, 0, agent(i), {"eval_return": float(i)})
         plant(paths.selected(i))
         if i == 2:
             open(os.path.join(paths.selected(i), "junk"), "w").close()  # not even empty
-        assert pool.read_selected(paths, i) is None
-        sel = pool.select(paths, i, cfg, like, {0}, "complete", pool.read_selected(paths, i - 1))
+        assert deposits.read_selected(paths, i) is None
+        sel = pool.select(paths, i, cfg, like, {0}, "complete", deposits.read_selected(paths, i - 1))
         doc, created = _in_time(lambda sel=sel: pool.publish_selection(paths, sel, by=0))["value"]
-        assert created and pool.read_selected(paths, i) == doc
+        assert created and deposits.read_selected(paths, i) == doc
     # best.json a directory, best.npz a FIFO: update_best still writes the best
     os.mkdir(paths.best_json)
     os.mkfifo(paths.best_npz)
-    assert pool.update_best(paths, pool.read_selected(paths, 3))
+    assert pool.update_best(paths, deposits.read_selected(paths, 3))
     assert paths.read_json(paths.best_json)["iteration"] == 3
     assert paths.read_bytes(paths.best_npz) == agent(3).to_bytes()
     # a file the protocol wrote is never removed: a refusal names the exact thing it refused
     st = os.stat(paths.selected(1))
     assert fsutil.set_aside(paths.selected(1), (st.st_dev, st.st_ino + 1), root=paths.root) is False
-    assert pool.read_selected(paths, 1) is not None
+    assert deposits.read_selected(paths, 1) is not None
 
 
 def test_heartbeats_that_are_special_files_read_as_absent(tmp_path):
@@ -293,7 +293,7 @@ def test_heartbeats_that_are_special_files_read_as_absent(tmp_path):
 
 # ---------------------------------------------------------------- commands: one line, exit 2
 def _cli(capsys, *args):
-    from rl_pool.cli import main
+    from rl_pool.commands.cli import main
 
     code = _in_time(lambda: main([str(a) for a in args]), 60)["value"]
     err = capsys.readouterr().err
@@ -464,7 +464,7 @@ def test_random_sigkills_and_restarts_lose_nothing(tmp_path):
     rng = random.Random(9)
     args = ["--pool-size", 2, "--iterations", CHAOS_ITERS, *SHORT, "--quiet", "--lr-adapt", 2, "--seed", 3, "--merge", "sum"]
     lrs = (0.003, 0.03)
-    paths = pool.Paths(d)
+    paths = layout.Paths(d)
     kills = []
 
     def start(m):

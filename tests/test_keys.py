@@ -8,8 +8,8 @@ import stat
 
 import pytest
 
-from rl_pool import keys
 from rl_pool.errors import UsageError
+from rl_pool.protocol import deposits, keys, layout
 
 
 @pytest.fixture
@@ -98,7 +98,7 @@ def test_forged_deposits_and_selections_are_never_adopted_in_a_live_pool(tmp_pat
 
     import numpy as np
 
-    from rl_pool import pool
+    from rl_pool.protocol import pool
 
     from .conftest import SHORT, spawn
     from .helpers import agent
@@ -127,12 +127,12 @@ def test_forged_deposits_and_selections_are_never_adopted_in_a_live_pool(tmp_pat
     for p in procs:
         _, err = p.communicate(timeout=240)
         assert p.returncode == 0, err
-    paths = pool.Paths(d)
+    paths = layout.Paths(d)
     assert pool.attach_key(paths)
     for i in range(1, 5):
         sel = json.loads((d / f"iterations/{i:06d}/selected.json").read_text())
         assert paths.key.verify(sel) and sel["agent_sha256"] != sha and sel["member"] != 2
         (skip,) = sel["skipped"]
         assert skip["member"] == 2 and "not written by a key holder" in skip["reason"]
-    assert not np.array_equal(pool.load_selected_agent(paths, 4).params["w"], evil.params["w"])
+    assert not np.array_equal(deposits.load_selected_agent(paths, 4).params["w"], evil.params["w"])
     assert json.loads((d / "best.json").read_text())["agent_sha256"] != sha

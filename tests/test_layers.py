@@ -1,6 +1,7 @@
-"""The package's layers point one way: file primitives and errors at the bottom, then maths, then
-learning and the pool protocol side by side (neither imports the other), then the commands. Checked on every module's imports,
-those inside functions included."""
+"""The package's layers point one way, and its folders show them: base modules (errors, thread
+caps, versions, bounded file access) and the settings at the top of ``rl_pool/``, then
+``maths/``, then ``learning/`` and ``protocol/`` side by side (neither imports the other), then
+``commands/``. Checked on every module's imports, those inside functions included."""
 
 import ast
 import os
@@ -9,52 +10,77 @@ import pytest
 
 PACKAGE = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "rl_pool")
 
-LAYERS = {
-    # errors, thread caps, versions, bounded reads and atomic writes: used by every layer
-    "base": {"errors", "threads", "versions", "fsutil"},
-    # pure maths and the data they work on: no processes, no pool files
-    "maths": {"policy", "returns", "normalizer", "learner", "merge", "selection", "layout", "agent", "config"},
-    # one member's learning: environments, rollouts, training and evaluation
-    "learning": {"envs", "rollout", "trainer"},
-    # the shared directory: reading, verifying, deciding and writing pool files
-    "protocol": {"claim", "keys", "pool", "heartbeat", "barrier", "doctor"},
-    # what a user runs: members, launcher, readers of pools, the command line
-    "commands": {"member", "launch", "cli", "status", "progress", "plot", "replay", "pick", "compare", "tb",
-                 "evaluate", "examples", "presets", "__main__", "__init__"},
-}
-MAY_IMPORT = {"base": {"base"}, "maths": {"base", "maths"}, "learning": {"base", "maths", "learning"},
-              "protocol": {"base", "maths", "protocol"}, "commands": set(LAYERS)}
+#: The top-level modules' layers; every other module's layer is its folder.
+TOP = {"errors": "base", "threads": "base", "versions": "base", "fsutil": "base", "config": "settings",
+       "__init__": "commands", "__main__": "commands"}
+LAYERS = ("base", "maths", "settings", "learning", "protocol", "commands")
+MAY_IMPORT = {"base": {"base"}, "maths": {"base", "maths"}, "settings": {"base", "maths", "settings"},
+              "learning": {"base", "maths", "settings", "learning"},
+              "protocol": {"base", "maths", "settings", "protocol"}, "commands": set(LAYERS)}
 
 
-def _layer(module):
-    return next(layer for layer, mods in LAYERS.items() if module in mods)
-
-
-def _imports(path):
-    tree = ast.parse(open(path).read())
-    out = set()
-    for node in ast.walk(tree):
-        if isinstance(node, ast.ImportFrom):
-            if node.level == 1 and node.module:
-                out.add(node.module.split(".")[0])
-            elif node.level == 1:
-                out.update(a.name for a in node.names)
-            elif node.module and node.module.split(".")[0] == "rl_pool":
-                parts = node.module.split(".")
-                out.update([parts[1]] if len(parts) > 1 else [a.name for a in node.names])
+def _modules():
+    out = {}
+    for dirpath, _, files in os.walk(PACKAGE):
+        rel = os.path.relpath(dirpath, PACKAGE)
+        for f in files:
+            if f.endswith(".py"):
+                name = f[:-3] if rel == "." else f"{rel.replace(os.sep, '.')}.{f[:-3]}"
+                out[name] = os.path.join(dirpath, f)
     return out
 
 
-MODULES = sorted(f[:-3] for f in os.listdir(PACKAGE) if f.endswith(".py"))
+MODULES = _modules()
 
 
-def test_every_module_has_a_layer():
-    assert [m for m in MODULES if not any(m in mods for mods in LAYERS.values())] == []
+def _layer(module: str) -> str:
+    head = module.split(".")[0]
+    return TOP.get(head, head)
 
 
-@pytest.mark.parametrize("module", MODULES)
+def _imports(path: str, module: str) -> set[str]:
+    """The rl_pool modules ``path`` imports, as names relative to the package (``maths.agent``)."""
+    package = module.rsplit(".", 1)[0] if "." in module else ""
+    out = set()
+    for node in ast.walk(ast.parse(open(path).read())):
+        if isinstance(node, ast.ImportFrom):
+            if node.level:
+                base = package.split(".")[:len(package.split(".")) - node.level + 1] if package else []
+                parts = [p for p in base if p] + (node.module.split(".") if node.module else [])
+            elif node.module and node.module.split(".")[0] == "rl_pool":
+                parts = node.module.split(".")[1:]
+            else:
+                continue
+            target = ".".join(parts)
+            names = [f"{target}.{a.name}" if target else a.name for a in node.names]
+            out.update(n for n in names if n in MODULES) or out.add(target)
+        elif isinstance(node, ast.Import):
+            out.update(a.name.split(".", 1)[1] for a in node.names if a.name.startswith("rl_pool."))
+    return {m for m in out if m in MODULES or m in LAYERS}
+
+
+def test_every_module_has_a_known_layer():
+    assert sorted(m for m in MODULES if _layer(m) not in LAYERS) == []
+
+
+def test_the_folders_are_the_layers():
+    folders = {d for d in os.listdir(PACKAGE) if os.path.isdir(os.path.join(PACKAGE, d)) and d != "__pycache__"}
+    assert folders == {"maths", "learning", "protocol", "commands"}
+
+
+@pytest.mark.parametrize("module", sorted(MODULES))
 def test_imports_point_down(module):
     here = _layer(module)
-    wrong = {m: _layer(m) for m in _imports(os.path.join(PACKAGE, module + ".py"))
-             if m in MODULES and _layer(m) not in MAY_IMPORT[here]}
+    wrong = {m: _layer(m) for m in _imports(MODULES[module], module) if _layer(m) not in MAY_IMPORT[here]}
     assert not wrong, f"{module} ({here}) imports {wrong}"
+
+
+def test_the_import_check_sees_imports_inside_functions():
+    # a guard against a check that passes because it reads nothing
+    assert "protocol.doctor" in _imports(MODULES["protocol.pool"], "protocol.pool")
+    assert "maths.agent" in _imports(MODULES["learning.trainer"], "learning.trainer")
+
+
+def test_no_module_is_over_about_500_lines():
+    long = {m: n for m, p in MODULES.items() if (n := sum(1 for _ in open(p))) > 550}
+    assert not long, long

@@ -5,7 +5,7 @@ import pytest
 import scipy.special
 import scipy.stats
 
-from rl_pool import learner, normalizer, policy, returns
+from rl_pool.maths import learner, normalizer, policy, returns
 
 
 def test_beta_log_prob_matches_scipy():
@@ -344,7 +344,7 @@ def test_update_refuses_mismatched_shapes():
 
 
 def test_adapted_learning_rate_rule():
-    from rl_pool.trainer import LR_BOUNDS, adapted_learning_rate
+    from rl_pool.learning.trainer import LR_BOUNDS, adapted_learning_rate
 
     assert adapted_learning_rate(0, 1, 5, 0.03, 0.003, won=True, factor=2) == 0.03
     assert adapted_learning_rate(0, 1, 5, 0.03, 0.003, won=False, factor=0) == 0.03
@@ -357,7 +357,7 @@ def test_adapted_learning_rate_rule():
 
 
 def test_random_streams_common_for_evaluation_distinct_for_training():
-    from rl_pool.trainer import eval_streams, train_streams
+    from rl_pool.learning.trainer import eval_streams, train_streams
 
     s0, r0 = train_streams(7, 0, 3, 4)
     s1, r1 = train_streams(7, 1, 3, 4)

@@ -10,9 +10,11 @@ import shutil
 import numpy as np
 import pytest
 
-from rl_pool import fsutil, merge, normalizer, pool, selection
+from rl_pool import fsutil
 from rl_pool.config import PoolConfig
-from rl_pool.normalizer import NormState
+from rl_pool.maths import merge, normalizer
+from rl_pool.maths.normalizer import NormState
+from rl_pool.protocol import deposits, layout, pool, selection
 
 from .helpers import agent, make_pool
 
@@ -226,21 +228,21 @@ def test_the_adaptive_scale_is_carried_when_nothing_is_merged():
 
 # ---------------------------------------------------------------- the store
 def _deposits(paths, n, returns, parent_return, seed0=10):
-    prev = pool.read_selected(paths, 0)
+    prev = deposits.read_selected(paths, 0)
     for m in range(n):
         extra = {"parent_eval_return": parent_return, "parent_sha256": prev["agent_sha256"]} if m == 0 else {}
         a = agent(seed0 + m)
         a = a.evolve(norm=normalizer.update(a.norm, np.random.default_rng(m).normal(size=(20 + m, 8))))
-        pool.deposit(paths, 1, m, a, {"eval_return": returns[m], **extra})
+        deposits.deposit(paths, 1, m, a, {"eval_return": returns[m], **extra})
 
 
 def _select_in_fresh_process(root, key_hex, out):
     os.environ["RL_POOL_KEY"] = key_hex
-    paths = pool.Paths(root)
+    paths = layout.Paths(root)
     cfg = pool.read_config(paths)
     pool.attach_key(paths)
-    sel = pool.select(paths, 1, cfg, pool.load_selected_agent(paths, 0), {0, 1, 2}, "complete",
-                      pool.read_selected(paths, 0))
+    sel = pool.select(paths, 1, cfg, deposits.load_selected_agent(paths, 0), {0, 1, 2}, "complete",
+                      deposits.read_selected(paths, 0))
     with open(out, "w") as fh:
         json.dump(sel, fh)
 
@@ -250,8 +252,8 @@ def test_two_members_compute_the_same_merged_bytes(tmp_path, monkeypatch):
     monkeypatch.setenv("RL_POOL_KEY", key_hex)
     paths, cfg = make_pool(tmp_path / "p", pool_size=3, merge="sum")
     _deposits(paths, 3, [5.0, 7.0, 6.0], 4.0)
-    mine = pool.select(paths, 1, cfg, pool.load_selected_agent(paths, 0), {0, 1, 2}, "complete",
-                       pool.read_selected(paths, 0))
+    mine = pool.select(paths, 1, cfg, deposits.load_selected_agent(paths, 0), {0, 1, 2}, "complete",
+                       deposits.read_selected(paths, 0))
     assert mine["winner"] == "merge" and mine["merge"]["members"] == [1, 2, 0]
     first = fsutil.read_bytes(os.path.join(paths.root, mine["agent"]), 1 << 20)
     os.remove(os.path.join(paths.root, mine["agent"]))
@@ -263,11 +265,11 @@ def test_two_members_compute_the_same_merged_bytes(tmp_path, monkeypatch):
     theirs = json.loads((tmp_path / "sel.json").read_text())
     assert theirs["agent_sha256"] == mine["agent_sha256"] and theirs == json.loads(json.dumps(mine))
     again = fsutil.read_bytes(os.path.join(paths.root, theirs["agent"]), 1 << 20)
-    assert again == first and pool.sha256(again) == mine["agent_sha256"]
+    assert again == first and layout.sha256(again) == mine["agent_sha256"]
     # and the bytes are the merge of the deposits, computed here from their files
-    merged = pool.load_selected_agent(paths, 1, mine)
-    parent = pool.load_selected_agent(paths, 0)
-    branches = {m: pool.read_deposit(paths, 1, m)[1] for m in range(3)}
+    merged = deposits.load_selected_agent(paths, 1, mine)
+    parent = deposits.load_selected_agent(paths, 0)
+    branches = {m: deposits.read_deposit(paths, 1, m)[1] for m in range(3)}
     w = selection.merge_weights(3)
     want = parent.params["w"] + 3.0 * sum(wk * (branches[m].params["w"] - parent.params["w"])
                                           for wk, m in zip(w, [1, 2, 0]))
@@ -285,24 +287,24 @@ def test_a_deposit_that_fails_its_checks_has_no_weight(tmp_path, forgery):
         doc = json.loads(open(paths.deposit_json(1, 2)).read())
         doc.pop("signature")
         fsutil.write_json(paths.deposit_json(1, 2), doc | {"eval_return": 1e9})
-    sel = pool.select(paths, 1, cfg, pool.load_selected_agent(paths, 0), {0, 1, 2}, "complete",
-                      pool.read_selected(paths, 0))
+    sel = pool.select(paths, 1, cfg, deposits.load_selected_agent(paths, 0), {0, 1, 2}, "complete",
+                      deposits.read_selected(paths, 0))
     assert sel["merge"]["members"] == [1, 0] and sel["merge"]["statistics_from"] == [0, 1]
     assert [s["member"] for s in sel["skipped"]] == [2]
-    merged = pool.load_selected_agent(paths, 1, sel)
-    assert merged.norm.count == pool.load_selected_agent(paths, 0).norm.count + 20 + 21
+    merged = deposits.load_selected_agent(paths, 1, sel)
+    assert merged.norm.count == deposits.load_selected_agent(paths, 0).norm.count + 20 + 21
 
 
 def test_gc_keeps_the_merged_agent_and_its_fallback(tmp_path):
     paths, cfg = make_pool(tmp_path / "p", pool_size=3, merge="sum")
     _deposits(paths, 3, [5.0, 7.0, 6.0], 4.0)
-    sel = pool.select(paths, 1, cfg, pool.load_selected_agent(paths, 0), {0, 1, 2}, "complete",
-                      pool.read_selected(paths, 0))
+    sel = pool.select(paths, 1, cfg, deposits.load_selected_agent(paths, 0), {0, 1, 2}, "complete",
+                      deposits.read_selected(paths, 0))
     pool.publish_selection(paths, sel, by=0)
     stray = os.path.join(paths.iteration(1), "merged-0123456789abcdef.npz")
     shutil.copy(os.path.join(paths.root, sel["agent"]), stray)
     pool.collect_garbage(paths, 1)
     left = sorted(n for n in os.listdir(paths.iteration(1)) if n.endswith(".npz"))
     assert left == sorted([os.path.basename(sel["agent"]), "member-001.npz"])
-    assert pool.update_best(paths, pool.read_selected(paths, 1))
+    assert pool.update_best(paths, deposits.read_selected(paths, 1))
     assert json.loads(open(paths.best_json).read())["agent"] == "iterations/000001/member-001.npz"

@@ -8,43 +8,13 @@ import time
 import numpy as np
 import pytest
 
-from rl_pool import Agent, heartbeat, selection
+from rl_pool import Agent
+from rl_pool.protocol import heartbeat, selection
 
 from .conftest import SHORT, past_its_deposit, rl_pool, spawn
+from .helpers import ITERS, history, run_pool
 
 pytestmark = pytest.mark.multiprocess
-
-ITERS = 6
-
-
-def history(d):
-    """What must be identical between two runs: selections, every score and every agent's hash."""
-    out = []
-    i = 1
-    while os.path.exists(d / f"iterations/{i:06d}/selected.json"):
-        sel = json.loads((d / f"iterations/{i:06d}/selected.json").read_text())
-        deps = {}
-        for m in range(2):
-            p = d / f"iterations/{i:06d}/member-{m:03d}.json"
-            if p.exists():
-                doc = json.loads(p.read_text())
-                deps[m] = (doc["eval_return"], doc["eval_returns"], doc["agent_sha256"], doc["learning_rate"],
-                           doc["parent_eval_return"])
-        out.append((sel["member"], sel["eval_return"], sel["agent_sha256"], deps, sel["winner"]))
-        i += 1
-    best = json.loads((d / "best.json").read_text())
-    out.append(("best", best["iteration"], best["member"], best["eval_return"],
-                (d / "best.npz").read_bytes() == (d / best["agent"]).read_bytes()))
-    return out
-
-
-def run_pool(d, lrs=(0.003, 0.03), extra=("--lr-adapt", 2, "--seed", 3, "--merge", "sum"), iters=ITERS):
-    procs = [spawn("train", "--pool-dir", d, "--pool-size", 2, "--member", m, "--learning-rate", lr,
-                   "--iterations", iters, *SHORT, "--quiet", *extra) for m, lr in enumerate(lrs)]
-    for p in procs:
-        _, err = p.communicate(timeout=240)
-        assert p.returncode == 0, err
-    return history(d)
 
 
 @pytest.fixture(scope="module")

@@ -11,7 +11,7 @@ import pytest
 from rl_pool import Agent
 
 from .conftest import SHORT, rl_pool
-from .test_evaluate import _reference_episode
+from .helpers import reference_episode
 
 ITERS = 5
 RESULTS = Path(__file__).resolve().parent.parent / "results"
@@ -56,7 +56,7 @@ def test_every_selected_agent_on_the_same_held_out_episodes_and_the_highest_mean
     # each candidate's episodes equal an independent loop on the wrapped env, held-out seeds 2,000,000 + k
     for c in res["candidates"]:
         agent = Agent.load(pool_dir / c["agent"])
-        ref = [_reference_episode(agent, 2_000_000 + k)[0] for k in range(3)]
+        ref = [reference_episode(agent, 2_000_000 + k)[0] for k in range(3)]
         np.testing.assert_allclose(c["returns"], ref, rtol=1e-12)
     means = [c["mean_return"] for c in res["candidates"]]
     top = res["candidates"][int(np.argmax(means))]
@@ -109,7 +109,7 @@ def test_forged_selections_read_without_the_key_are_skipped(pool_dir, tmp_path):
     hash) or an agent for another task is skipped with the reason, not run."""
     import shutil
 
-    from rl_pool import claim
+    from rl_pool.protocol import claim
 
     d = tmp_path / "copy"
     shutil.copytree(pool_dir, d)

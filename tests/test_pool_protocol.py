@@ -11,36 +11,26 @@ import time
 import numpy as np
 import pytest
 
-from rl_pool import barrier, fsutil, heartbeat, policy, pool, selection
+from rl_pool import fsutil
 from rl_pool.errors import UsageError
+from rl_pool.maths import policy
+from rl_pool.protocol import barrier, deposits, heartbeat, layout, pool, selection
 
-from .helpers import Evil, agent, fake_initial, make_pool
-
-
-def _deposit(paths, i, m, ret, seed=None, parent=None, parent_sha=None):
-    extra = {}
-    if parent is not None:
-        prev = pool.read_selected(paths, i - 1)
-        extra = {"parent_eval_return": parent, "parent_sha256": parent_sha or prev["agent_sha256"]}
-    return pool.deposit(paths, i, m, agent(m if seed is None else seed), {"eval_return": ret, **extra})
+from .helpers import Evil, agent, deposit, fake_initial, like_agent, make_pool
 
 
 def _decide(paths, cfg, i, members):
-    sel = pool.select(paths, i, cfg, _like(paths), set(members), "complete", pool.read_selected(paths, i - 1))
+    sel = pool.select(paths, i, cfg, like_agent(paths), set(members), "complete", deposits.read_selected(paths, i - 1))
     doc, _ = pool.publish_selection(paths, sel, by=0)
     return doc
 
 
-def _like(paths):
-    return pool.load_selected_agent(paths, 0)
-
-
 def test_init_writes_config_initial_and_selection_zero(tmp_path):
     paths, cfg = make_pool(tmp_path / "p")
-    assert cfg.pool_size == 2 and pool.last_selected(paths) == 0
-    sel = pool.read_selected(paths, 0)
+    assert cfg.pool_size == 2 and deposits.last_selected(paths) == 0
+    sel = deposits.read_selected(paths, 0)
     assert sel["agent"] == "iterations/000000/initial.npz"
-    assert pool.load_selected_agent(paths, 0).params["w"].shape == (9, 4)
+    assert deposits.load_selected_agent(paths, 0).params["w"].shape == (9, 4)
     saved = json.loads(open(paths.pool_json).read())
     assert saved["protocol"] == 3 and saved["pool_size"] == 2
 
@@ -67,7 +57,7 @@ def test_foreign_directories_are_refused(tmp_path):
     (tmp_path / "e").mkdir()
     (tmp_path / "e" / "pool.json").write_text("{garbage")
     with pytest.raises(UsageError, match="not a valid"):
-        pool.read_config(pool.Paths(tmp_path / "e"))
+        pool.read_config(layout.Paths(tmp_path / "e"))
 
 
 def test_choose_highest_return_ties_to_lowest_member():
@@ -79,15 +69,15 @@ def test_choose_highest_return_ties_to_lowest_member():
 
 def test_selection_is_argmax_over_valid_deposits(tmp_path):
     paths, cfg = make_pool(tmp_path / "p", pool_size=3)
-    _deposit(paths, 1, 0, 10.0)
-    _deposit(paths, 1, 1, 12.5)
-    _deposit(paths, 1, 2, 12.5)
-    have = pool.present(paths, 1, 3)
-    sel = pool.select(paths, 1, cfg, _like(paths), have, "complete", pool.read_selected(paths, 0))
+    deposit(paths, 1, 0, 10.0)
+    deposit(paths, 1, 1, 12.5)
+    deposit(paths, 1, 2, 12.5)
+    have = deposits.present(paths, 1, 3)
+    sel = pool.select(paths, 1, cfg, like_agent(paths), have, "complete", deposits.read_selected(paths, 0))
     assert sel["member"] == 1 and sel["eval_return"] == 12.5
     assert [c["member"] for c in sel["considered"]] == [0, 1, 2] and sel["skipped"] == []
     _, created = pool.publish_selection(paths, sel, by=0)
-    assert created and pool.load_selected_agent(paths, 1).to_bytes() == agent(1).to_bytes()
+    assert created and deposits.load_selected_agent(paths, 1).to_bytes() == agent(1).to_bytes()
 
 
 def test_stray_files_are_ignored_and_temp_files_never_count(tmp_path):
@@ -97,15 +87,15 @@ def test_stray_files_are_ignored_and_temp_files_never_count(tmp_path):
     for name in ["member-007.json", "member-1.json", "member-0001.json", "notes.txt", "member-000.json.bak",
                  ".member-001.json.tmp-host-1-abc", "member-001.wait.json"]:
         open(os.path.join(d, name), "w").write("{}")
-    assert pool.present(paths, 1, 2) == set()
-    _deposit(paths, 1, 0, 1.0)
-    assert pool.present(paths, 1, 2) == {0}
+    assert deposits.present(paths, 1, 2) == set()
+    deposit(paths, 1, 0, 1.0)
+    assert deposits.present(paths, 1, 2) == {0}
 
 
 def test_hostile_and_broken_deposits_are_skipped_with_reasons(tmp_path):
     paths, cfg = make_pool(tmp_path / "p", pool_size=4)
     marker = tmp_path / "code-ran"
-    _deposit(paths, 1, 0, 3.0)
+    deposit(paths, 1, 0, 3.0)
     # 1: a pickled object inside the .npz claiming a huge return
     with np.load(io.BytesIO(agent().to_bytes())) as z:
         arrays = {k: z[k] for k in z.files}
@@ -114,16 +104,16 @@ def test_hostile_and_broken_deposits_are_skipped_with_reasons(tmp_path):
     data = buf.getvalue()
     open(paths.deposit_npz(1, 1), "wb").write(data)
     fsutil.write_json(paths.deposit_json(1, 1), paths.sign({"iteration": 1, "member": 1, "eval_return": 1e9,
-                                                            "agent_sha256": pool.sha256(data)}))
+                                                            "agent_sha256": layout.sha256(data)}))
     # 2: garbage JSON
     open(paths.deposit_json(1, 2), "w").write("{\"eval_return\": 1e99, oops")
     # 3: a valid agent whose JSON claims NaN
-    _deposit(paths, 1, 3, 1.0)
+    deposit(paths, 1, 3, 1.0)
     doc = json.loads(open(paths.deposit_json(1, 3)).read())
     # a member whose return came out NaN writes null (JSON has no NaN; signed, like any deposit)
     open(paths.deposit_json(1, 3), "w").write(json.dumps(paths.sign(doc | {"eval_return": None})))
-    sel = pool.select(paths, 1, cfg, _like(paths), pool.present(paths, 1, 4), "complete",
-                      pool.read_selected(paths, 0))
+    sel = pool.select(paths, 1, cfg, like_agent(paths), deposits.present(paths, 1, 4), "complete",
+                      deposits.read_selected(paths, 0))
     assert sel["member"] == 0
     reasons = {s["member"]: s["reason"] for s in sel["skipped"]}
     assert set(reasons) == {1, 2, 3}
@@ -133,10 +123,10 @@ def test_hostile_and_broken_deposits_are_skipped_with_reasons(tmp_path):
 
 def test_swapped_agent_or_other_env_is_skipped(tmp_path):
     paths, cfg = make_pool(tmp_path / "p", pool_size=2)
-    _deposit(paths, 1, 0, 3.0)
-    _deposit(paths, 1, 1, 5.0)
+    deposit(paths, 1, 0, 3.0)
+    deposit(paths, 1, 1, 5.0)
     open(paths.deposit_npz(1, 1), "wb").write(agent(9).to_bytes())  # not the agent its JSON hashed
-    sel = pool.select(paths, 1, cfg, _like(paths), {0, 1}, "complete", pool.read_selected(paths, 0))
+    sel = pool.select(paths, 1, cfg, like_agent(paths), {0, 1}, "complete", deposits.read_selected(paths, 0))
     assert sel["member"] == 0 and "hash" in sel["skipped"][0]["reason"]
 
 
@@ -145,20 +135,20 @@ def test_no_valid_deposit_carries_the_previous_agent_over(tmp_path):
     open(os.path.join(paths.iteration(0), "..", "x"), "w").close()
     os.makedirs(paths.iteration(1))
     open(paths.deposit_json(1, 0), "w").write("nope")
-    sel = pool.select(paths, 1, cfg, _like(paths), {0}, "timeout", pool.read_selected(paths, 0))
+    sel = pool.select(paths, 1, cfg, like_agent(paths), {0}, "timeout", deposits.read_selected(paths, 0))
     assert sel["member"] is None and sel["carried_from"] == 0
     pool.publish_selection(paths, sel, by=0)
-    assert pool.load_selected_agent(paths, 1).to_bytes() == pool.load_selected_agent(paths, 0).to_bytes()
+    assert deposits.load_selected_agent(paths, 1).to_bytes() == deposits.load_selected_agent(paths, 0).to_bytes()
 
 
 def test_first_selection_written_wins(tmp_path):
     paths, cfg = make_pool(tmp_path / "p", pool_size=2)
-    _deposit(paths, 1, 0, 1.0)
-    prev = pool.read_selected(paths, 0)
-    alone = pool.select(paths, 1, cfg, _like(paths), {0}, "timeout", prev)
+    deposit(paths, 1, 0, 1.0)
+    prev = deposits.read_selected(paths, 0)
+    alone = pool.select(paths, 1, cfg, like_agent(paths), {0}, "timeout", prev)
     doc1, c1 = pool.publish_selection(paths, alone, by=0)
-    _deposit(paths, 1, 1, 99.0)
-    full = pool.select(paths, 1, cfg, _like(paths), {0, 1}, "complete", prev)
+    deposit(paths, 1, 1, 99.0)
+    full = pool.select(paths, 1, cfg, like_agent(paths), {0, 1}, "complete", prev)
     doc2, c2 = pool.publish_selection(paths, full, by=1)
     assert (c1, c2) == (True, False)
     assert doc2["member"] == doc1["member"] == 0
@@ -173,11 +163,11 @@ def test_selection_pointing_outside_the_pool_is_refused(tmp_path):
 def test_gc_keeps_selected_agent_and_all_json(tmp_path):
     paths, cfg = make_pool(tmp_path / "p", pool_size=3)
     for m, r in enumerate([1.0, 7.0, 2.0]):
-        _deposit(paths, 1, m, r)
+        deposit(paths, 1, m, r)
     open(os.path.join(paths.iteration(1), f".member-002.npz.tmp-{heartbeat.HOST.split('.')[0]}-{2**22 + 4321}-x"), "w").close()  # a dead writer's
     live = f".member-000.json.tmp-{heartbeat.HOST.split('.')[0]}-{os.getpid()}-y"
     open(os.path.join(paths.iteration(1), live), "w").close()  # a live writer's: kept
-    sel = pool.select(paths, 1, cfg, _like(paths), {0, 1, 2}, "complete", pool.read_selected(paths, 0))
+    sel = pool.select(paths, 1, cfg, like_agent(paths), {0, 1, 2}, "complete", deposits.read_selected(paths, 0))
     pool.publish_selection(paths, sel, by=0)
     assert pool.collect_garbage(paths, 1) == 3
     names = sorted(os.listdir(paths.iteration(1)))
@@ -188,8 +178,8 @@ def test_gc_keeps_selected_agent_and_all_json(tmp_path):
 def test_update_best_only_on_improvement(tmp_path):
     paths, cfg = make_pool(tmp_path / "p", pool_size=1)
     for i, r in [(1, 5.0), (2, 3.0), (3, 8.0)]:
-        _deposit(paths, i, 0, r, seed=i)
-        sel = pool.select(paths, i, cfg, _like(paths), {0}, "complete", pool.read_selected(paths, i - 1))
+        deposit(paths, i, 0, r, seed=i)
+        sel = pool.select(paths, i, cfg, like_agent(paths), {0}, "complete", deposits.read_selected(paths, i - 1))
         pool.publish_selection(paths, sel, by=0)
         pool.update_best(paths, sel)
         best = json.loads(open(paths.best_json).read())
@@ -198,7 +188,7 @@ def test_update_best_only_on_improvement(tmp_path):
 
 
 def test_atomic_write_leaves_no_temp_and_create_once_is_once(tmp_path):
-    from rl_pool import claim
+    from rl_pool.protocol import claim
 
     p = tmp_path / "f.json"
     fsutil.atomic_write(p, b"one")
@@ -256,16 +246,16 @@ def test_a_heartbeat_writes_a_quick_state_change_when_its_gap_has_passed(tmp_pat
 def test_barrier_lists_again_after_a_stale_verdict(tmp_path):
     """A member that deposits and then stops between two polls is not left out."""
     paths, cfg = make_pool(tmp_path / "p", pool_size=3)
-    _deposit(paths, 1, 0, 1.0)
-    _deposit(paths, 1, 1, 2.0)
+    deposit(paths, 1, 0, 1.0)
+    deposit(paths, 1, 1, 2.0)
 
     class LateThenStopped(heartbeat.Liveness):
         def stale(self, m):
             if not os.path.exists(paths.deposit_json(1, 2)):
-                _deposit(paths, 1, 2, 9.0)
+                deposit(paths, 1, 2, 9.0)
             return f"member {m} stopped"
 
-    res = barrier.barrier(paths, 1, cfg, 0, _like(paths), quorum=2, timeout=30,
+    res = barrier.barrier(paths, 1, cfg, 0, like_agent(paths), quorum=2, timeout=30,
                        liveness=LateThenStopped(paths, 60))
     assert res.selection["member"] == 2 and res.selection["skipped"] == []
     assert res.selection["quorum_reason"] == "complete"
@@ -276,7 +266,7 @@ def test_the_member_that_sees_every_deposit_selects_the_others_wait_on_the_decis
     selects; member 0 adopts that decision having listed the directory only on its slow timer."""
 
     paths, cfg = make_pool(tmp_path / "p", pool_size=2)
-    _deposit(paths, 1, 0, 1.0)
+    deposit(paths, 1, 0, 1.0)
     listings = []
     real_listdir = fsutil.listdir
 
@@ -288,7 +278,7 @@ def test_the_member_that_sees_every_deposit_selects_the_others_wait_on_the_decis
     out = {}
 
     def member0():
-        out[0] = barrier.barrier(paths, 1, cfg, 0, _like(paths), quorum=2, timeout=30,
+        out[0] = barrier.barrier(paths, 1, cfg, 0, like_agent(paths), quorum=2, timeout=30,
                               liveness=heartbeat.Liveness(paths, 60), poll_max=0.01)
 
     fsutil.listdir = counting_listdir
@@ -296,8 +286,8 @@ def test_the_member_that_sees_every_deposit_selects_the_others_wait_on_the_decis
         t = threading.Thread(target=member0, name="member-0")
         t.start()
         time.sleep(0.6)  # member 0 polls the decision ~60 times meanwhile
-        _deposit(paths, 1, 1, 2.0)
-        out[1] = barrier.barrier(paths, 1, cfg, 1, _like(paths), quorum=2, timeout=30,
+        deposit(paths, 1, 1, 2.0)
+        out[1] = barrier.barrier(paths, 1, cfg, 1, like_agent(paths), quorum=2, timeout=30,
                               liveness=heartbeat.Liveness(paths, 60), poll_max=0.01)
         t.join(10)
     finally:
@@ -312,10 +302,10 @@ def test_a_waiting_member_selects_when_the_last_depositor_does_not(tmp_path):
     """The last deposit appears but its writer never selects (killed, or its listing lagged): the
     waiting member's timed listing sees every deposit, waits the grace for a decision, then selects."""
     paths, cfg = make_pool(tmp_path / "p", pool_size=2)
-    _deposit(paths, 1, 0, 1.0)
-    threading.Timer(0.3, lambda: _deposit(paths, 1, 1, 2.0)).start()
+    deposit(paths, 1, 0, 1.0)
+    threading.Timer(0.3, lambda: deposit(paths, 1, 1, 2.0)).start()
     t0 = time.monotonic()
-    res = barrier.barrier(paths, 1, cfg, 0, _like(paths), quorum=2, timeout=30,
+    res = barrier.barrier(paths, 1, cfg, 0, like_agent(paths), quorum=2, timeout=30,
                        liveness=heartbeat.Liveness(paths, 60), poll_max=0.01)
     waited = time.monotonic() - t0
     assert res.created and res.selection["member"] == 1 and res.selection["quorum_reason"] == "complete"
@@ -328,16 +318,16 @@ def test_waiting_members_stagger_their_grace_so_one_selects_for_a_silent_last_de
     after one grace, member 1 (two graces) finds that decision at its next poll: one selection, not
     one per waiting member (each reads N files)."""
     paths, cfg = make_pool(tmp_path / "p", pool_size=3)
-    _deposit(paths, 1, 0, 1.0)
-    _deposit(paths, 1, 1, 3.0)
+    deposit(paths, 1, 0, 1.0)
+    deposit(paths, 1, 1, 3.0)
     calls = []
     real_select = pool.select
     monkeypatch.setattr(pool, "select", lambda *a, **kw: calls.append(a[1]) or real_select(*a, **kw))
-    threading.Timer(0.3, lambda: _deposit(paths, 1, 2, 2.0)).start()
+    threading.Timer(0.3, lambda: deposit(paths, 1, 2, 2.0)).start()
     results = {}
 
     def wait(m):
-        results[m] = barrier.barrier(paths, 1, cfg, m, _like(paths), quorum=3, timeout=30,
+        results[m] = barrier.barrier(paths, 1, cfg, m, like_agent(paths), quorum=3, timeout=30,
                                   liveness=heartbeat.Liveness(paths, 60), poll_max=0.01)
 
     threads = [threading.Thread(target=wait, args=(m,)) for m in (0, 1)]
@@ -354,7 +344,7 @@ def test_a_held_directory_is_walked_to_once_and_reads_below_it_stay_bounded(tmp_
     """Under a hold, each read or listing opens the held directory afresh ("." relative to it: one
     open, which on NFS revalidates the directory) instead of walking pool/iterations/000001 again."""
     paths, _ = make_pool(tmp_path / "p", pool_size=2)
-    _deposit(paths, 1, 0, 1.0)
+    deposit(paths, 1, 0, 1.0)
     d = paths.iteration(1)
     os.symlink("/dev/zero", os.path.join(d, "member-001.json"))
     opened = []
@@ -370,17 +360,17 @@ def test_a_held_directory_is_walked_to_once_and_reads_below_it_stay_bounded(tmp_
         with paths.holding(d):
             assert len(opened) == 3  # pool, iterations, 000001: once
             for _ in range(5):
-                assert pool.read_metrics(paths, 1, 0)["eval_return"] == 1.0
+                assert deposits.read_metrics(paths, 1, 0)["eval_return"] == 1.0
                 with pytest.raises(ValueError, match="refused"):
-                    pool.read_metrics(paths, 1, 1)
+                    deposits.read_metrics(paths, 1, 1)
             assert opened[3:] == ["."] * 10
             for _ in range(3):  # listings from the held directory: each complete
-                assert pool.present(paths, 1, 2) == {0, 1}  # by name; selection then skips the link
+                assert deposits.present(paths, 1, 2) == {0, 1}  # by name; selection then skips the link
             assert opened[3:] == ["."] * 13
-            assert pool.read_selected(paths, 1) is None  # the decision poll: one open, one lookup
+            assert deposits.read_selected(paths, 1) is None  # the decision poll: one open, one lookup
             assert opened[3:] == ["."] * 14
         held_reads = len(opened)
-        pool.read_metrics(paths, 1, 0)
+        deposits.read_metrics(paths, 1, 0)
         assert len(opened) == held_reads + 3  # walked from the root again
     finally:
         os.open = real_open
@@ -393,18 +383,18 @@ def test_a_held_directory_is_walked_to_once_and_reads_below_it_stay_bounded(tmp_
 def test_parent_competes_and_keeps_the_pool_from_losing_ground(tmp_path):
     paths, cfg = make_pool(tmp_path / "p", pool_size=3)
     assert cfg.selection == "parent"
-    start = pool.read_selected(paths, 0)
+    start = deposits.read_selected(paths, 0)
     # every branch is worse than the agent they started from, re-scored on the same episodes
     for m, r in enumerate([4.0, 6.0, 5.0]):
-        _deposit(paths, 1, m, r, parent=9.0)
+        deposit(paths, 1, m, r, parent=9.0)
     sel = _decide(paths, cfg, 1, {0, 1, 2})
     assert (sel["winner"], sel["member"], sel["eval_return"]) == ("parent", None, 9.0)
     assert sel["agent_sha256"] == start["agent_sha256"]
     assert sel["best_branch"] == {"member": 1, "eval_return": 6.0, "score": 6.0}
-    assert pool.load_selected_agent(paths, 1).to_bytes() == pool.load_selected_agent(paths, 0).to_bytes()
+    assert deposits.load_selected_agent(paths, 1).to_bytes() == deposits.load_selected_agent(paths, 0).to_bytes()
     # a branch that ties with the parent has not lost ground: it wins (then lowest member among tied branches)
     for m, r in enumerate([9.0, 9.0, 1.0]):
-        _deposit(paths, 2, m, r, seed=10 + m, parent=9.0)
+        deposit(paths, 2, m, r, seed=10 + m, parent=9.0)
     sel = _decide(paths, cfg, 2, {0, 1, 2})
     assert (sel["winner"], sel["member"]) == ("branch", 0)
     assert sel["parent"] == {"iteration": 1, "member": None, "agent_sha256": start["agent_sha256"],
@@ -414,15 +404,15 @@ def test_parent_competes_and_keeps_the_pool_from_losing_ground(tmp_path):
 def test_parent_score_needs_the_right_parent_and_the_parent_rule(tmp_path):
     paths, cfg = make_pool(tmp_path / "p", pool_size=2)
     # member 0 reports a score for some other agent: not the parent's; member 1's counts
-    _deposit(paths, 1, 0, 3.0, parent=100.0, parent_sha="0" * 64)
-    _deposit(paths, 1, 1, 2.0, parent=5.0)
-    sel = pool.select(paths, 1, cfg, _like(paths), {0, 1}, "complete", pool.read_selected(paths, 0))
+    deposit(paths, 1, 0, 3.0, parent=100.0, parent_sha="0" * 64)
+    deposit(paths, 1, 1, 2.0, parent=5.0)
+    sel = pool.select(paths, 1, cfg, like_agent(paths), {0, 1}, "complete", deposits.read_selected(paths, 0))
     assert sel["winner"] == "parent" and sel["eval_return"] == 5.0
     # the old rule (branches only) ignores the parent
     paths2, cfg2 = make_pool(tmp_path / "q", pool_size=2, selection="branches")
-    _deposit(paths2, 1, 0, 3.0, parent=100.0)
-    _deposit(paths2, 1, 1, 2.0, parent=100.0)
-    sel2 = pool.select(paths2, 1, cfg2, _like(paths2), {0, 1}, "complete", pool.read_selected(paths2, 0))
+    deposit(paths2, 1, 0, 3.0, parent=100.0)
+    deposit(paths2, 1, 1, 2.0, parent=100.0)
+    sel2 = pool.select(paths2, 1, cfg2, like_agent(paths2), {0, 1}, "complete", deposits.read_selected(paths2, 0))
     assert (sel2["winner"], sel2["member"]) == ("branch", 0)
 
 
@@ -451,11 +441,11 @@ def test_without_any_report_of_the_parent_the_best_branch_wins(tmp_path):
     branches), and a later report from any member counts again."""
     paths, cfg = make_pool(tmp_path / "p", pool_size=5)
     for m, r in ((3, 4.0), (4, 6.0)):
-        _deposit(paths, 1, m, r)
+        deposit(paths, 1, m, r)
     sel = _decide(paths, cfg, 1, {3, 4})
     assert (sel["winner"], sel["member"], sel["parent"]["eval_return"]) == ("branch", 4, None)
-    _deposit(paths, 2, 3, 1.0)
-    _deposit(paths, 2, 4, 2.0, parent=7.0)
+    deposit(paths, 2, 3, 1.0)
+    deposit(paths, 2, 4, 2.0, parent=7.0)
     sel = _decide(paths, cfg, 2, {3, 4})
     assert (sel["winner"], sel["eval_return"]) == ("parent", 7.0)
 
@@ -463,12 +453,12 @@ def test_without_any_report_of_the_parent_the_best_branch_wins(tmp_path):
 def test_selection_is_a_pure_function_of_the_files(tmp_path):
     paths, cfg = make_pool(tmp_path / "p", pool_size=3)
     for m, r in [(2, 4.0), (0, 7.0), (1, 7.5)]:  # written in another order than member order
-        _deposit(paths, 1, m, r, parent=7.2)
-    prev = pool.read_selected(paths, 0)
+        deposit(paths, 1, m, r, parent=7.2)
+    prev = deposits.read_selected(paths, 0)
     picks = []
     for _ in range(3):
-        pool._parsed.clear()  # each pick reads and parses the files anew, none from the agent cache
-        picks.append(pool.select(paths, 1, cfg, _like(paths), {0, 1, 2}, "complete", prev))
+        deposits._parsed.clear()  # each pick reads and parses the files anew, none from the agent cache
+        picks.append(pool.select(paths, 1, cfg, like_agent(paths), {0, 1, 2}, "complete", prev))
     assert picks[0] == picks[1] == picks[2] and picks[0]["member"] == 1
 
 
@@ -476,13 +466,13 @@ def test_revert_to_the_best_after_k_iterations_without_improvement(tmp_path):
     paths, cfg = make_pool(tmp_path / "p", pool_size=1, selection="branches", revert_after=2)
     sels = {}
     for i, r in [(1, 5.0), (2, 8.0), (3, 6.0), (4, 7.0), (5, 3.0), (6, 9.0)]:
-        _deposit(paths, i, 0, r, seed=i)
+        deposit(paths, i, 0, r, seed=i)
         sels[i] = _decide(paths, cfg, i, {0})
     assert [sels[i]["winner"] for i in range(1, 7)] == ["branch", "branch", "branch", "revert", "branch", "branch"]
     assert [sels[i]["since_best"] for i in range(1, 7)] == [0, 0, 1, 0, 1, 0]
     assert sels[4]["reverted_to"] == 2 and sels[4]["eval_return"] == 8.0
     assert sels[4]["instead"] == {"winner": "branch", "member": 0, "eval_return": 7.0, "score": 7.0}
-    assert pool.load_selected_agent(paths, 4).to_bytes() == agent(2).to_bytes()
+    assert deposits.load_selected_agent(paths, 4).to_bytes() == agent(2).to_bytes()
     assert sels[6]["best"]["iteration"] == 6
 
 
@@ -496,7 +486,7 @@ def test_best_score_mean_lets_a_lucky_first_score_wear_off(tmp_path, best_score)
     sels = {}
     for i, (branch, parent) in enumerate([(10.0, 1.0), (6.0, 7.0), (8.2, 7.0), (5.0, 8.0), (7.0, 7.0),
                                           (4.0, 5.0), (3.0, 7.9)], start=1):
-        _deposit(paths, i, 0, branch, seed=i, parent=parent)
+        deposit(paths, i, 0, branch, seed=i, parent=parent)
         sels[i] = _decide(paths, cfg, i, {0})
     if best_score == "first":
         assert [sels[i]["winner"] for i in range(1, 5)] == ["branch", "parent", "branch", "revert"]
@@ -513,7 +503,7 @@ def test_best_score_mean_lets_a_lucky_first_score_wear_off(tmp_path, best_score)
     assert sels[4]["best"]["mean_score"] == pytest.approx(8.1)
     assert sels[5]["best"]["mean_score"] == pytest.approx(23.2 / 3) and sels[5]["since_best"] == 2
     assert (sels[6]["reverted_to"], sels[6]["eval_return"], sels[6]["since_best"]) == (3, 8.2, 0)
-    assert pool.load_selected_agent(paths, 6).to_bytes() == agent(3).to_bytes()
+    assert deposits.load_selected_agent(paths, 6).to_bytes() == agent(3).to_bytes()
     # reverted to, it is the parent again and its re-score counts
     assert sels[7]["best"]["scores"] == 4 and sels[7]["best"]["mean_score"] == pytest.approx(31.1 / 4)
 
@@ -532,11 +522,11 @@ def test_best_score_mean_with_branches_re_scores_only_a_best(tmp_path):
     """Branches only: members re-score the parent when it is the best (just made the best, or
     reverted to); the re-score counts towards the best's mean and never competes."""
     paths, cfg = make_pool(tmp_path / "p", pool_size=1, selection="branches", revert_after=2, best_score="mean")
-    sels = {0: pool.read_selected(paths, 0)}
+    sels = {0: deposits.read_selected(paths, 0)}
     # (branch, the parent's re-score as reported; only a best's is read)
     for i, (branch, parent) in enumerate([(10.0, 1.0), (6.0, 7.0), (8.6, 100.0), (5.0, 6.0), (7.0, 100.0),
                                           (3.0, 8.0)], start=1):
-        _deposit(paths, i, 0, branch, seed=i, parent=parent)
+        deposit(paths, i, 0, branch, seed=i, parent=parent)
         sels[i] = _decide(paths, cfg, i, {0})
     assert [selection.rescores_parent(cfg, sels[i]) for i in range(6)] == [False, True, False, True, False, True]
     assert [sels[i]["winner"] for i in range(1, 7)] == ["branch", "branch", "branch", "branch", "revert", "branch"]
@@ -548,7 +538,7 @@ def test_best_score_mean_with_branches_re_scores_only_a_best(tmp_path):
     assert sels[6]["best"]["scores"] == 3 and sels[6]["best"]["mean_score"] == pytest.approx(22.6 / 3)
     # the default ranks by first scores: no re-scores read with branches only
     paths2, cfg2 = make_pool(tmp_path / "q", pool_size=1, selection="branches", revert_after=2)
-    _deposit(paths2, 1, 0, 10.0, seed=1, parent=1.0)
+    deposit(paths2, 1, 0, 10.0, seed=1, parent=1.0)
     first = _decide(paths2, cfg2, 1, {0})
     assert not selection.rescores_parent(cfg2, first) and "mean_score" not in first["best"]
 
@@ -559,8 +549,8 @@ def test_with_a_reward_shift_selection_compares_the_training_objective(tmp_path)
     paths, cfg = make_pool(tmp_path / "p", pool_size=2, reward_shift=1.0)
 
     def dep(m, ret, score, parent_ret, parent_score, seed):
-        prev = pool.read_selected(paths, 1 if seed > 9 else 0)
-        pool.deposit(paths, 2 if seed > 9 else 1, m, agent(seed),
+        prev = deposits.read_selected(paths, 1 if seed > 9 else 0)
+        deposits.deposit(paths, 2 if seed > 9 else 1, m, agent(seed),
                      {"eval_return": ret, "eval_score": score, "parent_eval_return": parent_ret,
                       "parent_eval_score": parent_score, "parent_sha256": prev["agent_sha256"]})
 
@@ -576,15 +566,15 @@ def test_with_a_reward_shift_selection_compares_the_training_objective(tmp_path)
     assert (sel["winner"], sel["eval_return"], sel["score"]) == ("parent", 650.0, 95.0)
     # a deposit without a finite shifted score is skipped with its reason
     paths3, cfg3 = make_pool(tmp_path / "q", pool_size=2, reward_shift=1.0)
-    pool.deposit(paths3, 1, 0, agent(1), {"eval_return": 5.0})
-    sel = pool.select(paths3, 1, cfg3, _like(paths3), {0}, "timeout", pool.read_selected(paths3, 0))
+    deposits.deposit(paths3, 1, 0, agent(1), {"eval_return": 5.0})
+    sel = pool.select(paths3, 1, cfg3, like_agent(paths3), {0}, "timeout", deposits.read_selected(paths3, 0))
     assert sel["winner"] == "carried" and "eval_score" in sel["skipped"][0]["reason"]
 
 
 def test_read_only_commands_read_older_pools_members_refuse_them(tmp_path):
     paths, _cfg = make_pool(tmp_path / "p", pool_size=1)
     doc = json.loads(open(paths.pool_json).read())
-    older = pool.Paths(tmp_path / "old")
+    older = layout.Paths(tmp_path / "old")
     os.makedirs(older.root)
     open(older.pool_json, "w").write(json.dumps(doc | {"protocol": 2}))  # a protocol-2 pool: plain file
     assert pool.read_config(older, readonly=True).pool_size == 1
@@ -598,16 +588,16 @@ def test_selection_reads_n_metrics_and_only_the_winners_agent(tmp_path, monkeypa
     n = 8
     paths, cfg = make_pool(tmp_path / "p", pool_size=n)
     for m in range(n):
-        _deposit(paths, 1, m, float(m), parent=-1.0)
+        deposit(paths, 1, m, float(m), parent=-1.0)
     # the best deposit's agent is broken: skipped with its reason, the next best wins
     open(paths.deposit_npz(1, n - 1), "wb").write(b"not an agent")
     # a lower-ranked broken agent is never read, so it cannot cost anything
     open(paths.deposit_npz(1, 0), "wb").write(b"not an agent either")
-    like = _like(paths)
+    like = like_agent(paths)
     opened = []
     real = fsutil.open_regular
     monkeypatch.setattr(fsutil, "open_regular", lambda path, *a, **k: opened.append(path) or real(path, *a, **k))
-    sel = pool.select(paths, 1, cfg, like, set(range(n)), "complete", pool.read_selected(paths, 0))
+    sel = pool.select(paths, 1, cfg, like, set(range(n)), "complete", deposits.read_selected(paths, 0))
     assert (sel["winner"], sel["member"]) == ("branch", n - 2)
     assert sel["skipped"] == [{"member": n - 1, "reason": "agent does not match the hash in its metrics"}]
     assert [c["member"] for c in sel["considered"]] == list(range(n - 1))
@@ -617,8 +607,8 @@ def test_selection_reads_n_metrics_and_only_the_winners_agent(tmp_path, monkeypa
 
 
 def test_pools_made_before_init_shape_still_read_and_it_shapes_the_initial_agent():
+    from rl_pool.commands.member import make_initial
     from rl_pool.config import PoolConfig
-    from rl_pool.member import make_initial
 
     cfg = PoolConfig(env="Swimmer-v5", pool_size=2).validate()
     saved = cfg.to_json()
@@ -649,7 +639,7 @@ def test_paired_margin_against_numpy():
 
 
 def _margin_deposit(paths, i, m, branch_eps, parent_eps, seed, lengths=None, parent_lengths=None):
-    prev = pool.read_selected(paths, i - 1)
+    prev = deposits.read_selected(paths, i - 1)
     lengths = lengths or [60] * len(branch_eps)
     parent_lengths = parent_lengths or [60] * len(parent_eps)
     doc = {"eval_return": float(np.mean(branch_eps)), "eval_returns": branch_eps, "eval_lengths": lengths,
@@ -658,7 +648,7 @@ def _margin_deposit(paths, i, m, branch_eps, parent_eps, seed, lengths=None, par
            "parent_eval_lengths": parent_lengths,
            "parent_eval_score": float(np.mean(np.subtract(parent_eps, parent_lengths))),
            "parent_sha256": prev["agent_sha256"]}
-    pool.deposit(paths, i, m, agent(seed), doc)
+    deposits.deposit(paths, i, m, agent(seed), doc)
 
 
 def test_with_a_selection_margin_a_branch_must_beat_the_parent_by_k_paired_standard_errors(tmp_path):
@@ -701,7 +691,7 @@ def test_a_selection_margin_uses_shifted_episode_scores_and_needs_whole_episode_
     _margin_deposit(paths, 1, 0, [120.0, 121.0, 120.0], parent, seed=1, lengths=[60, 60, 60], parent_lengths=plens)
     # member 1 moves better in the same time: +30 per episode
     _margin_deposit(paths, 1, 1, [130.0, 131.0, 130.0], parent, seed=2, lengths=[30, 30, 30], parent_lengths=plens)
-    doc = pool.read_metrics(paths, 1, 1)
+    doc = deposits.read_metrics(paths, 1, 1)
     assert selection.episode_scores(doc, 3, 1.0, 60) == [100.0, 101.0, 100.0]
     assert selection.episode_scores(doc, 3, 0.0, 60) == [130.0, 131.0, 130.0]
     assert selection.episode_scores(doc, 3, 1.0, 60, "parent_") == [70.0, 70.0, 70.0]
@@ -714,8 +704,8 @@ def test_a_selection_margin_uses_shifted_episode_scores_and_needs_whole_episode_
     assert [c["diff"] for c in sel["considered"]] == pytest.approx([-29 / 3, 30 + 1 / 3])
     # without the parent's episodes (deposits from before the margin): plain means decide
     paths2, cfg2 = make_pool(tmp_path / "old", pool_size=2, selection_margin=5)
-    _deposit(paths2, 1, 0, 3.0, parent=2.0)
-    _deposit(paths2, 1, 1, 1.0, parent=2.0)
+    deposit(paths2, 1, 0, 3.0, parent=2.0)
+    deposit(paths2, 1, 1, 1.0, parent=2.0)
     sel = _decide(paths2, cfg2, 1, {0, 1})
     assert (sel["winner"], sel["member"]) == ("branch", 0) and "margin" not in sel
 
@@ -733,11 +723,11 @@ def test_a_garbled_episode_report_cannot_break_a_margin_selection(tmp_path, garb
     paths, cfg = make_pool(tmp_path / "g", pool_size=2, selection_margin=1, reward_shift=0.5)
     parent = [10.0, 20.0, 30.0]
     _margin_deposit(paths, 1, 1, [11.0, 21.0, 31.0], parent, seed=2, lengths=[5, 5, 5], parent_lengths=[5, 5, 5])
-    prev = pool.read_selected(paths, 0)
+    prev = deposits.read_selected(paths, 0)
     doc = {"eval_return": 1000.0, "eval_score": 1000.0, "eval_returns": [1000.0] * 3, "eval_lengths": [5] * 3,
            "parent_eval_return": 20.0, "parent_eval_score": 17.5, "parent_eval_returns": parent,
            "parent_eval_lengths": [5] * 3, "parent_sha256": prev["agent_sha256"]} | garbled
-    pool.deposit(paths, 1, 0, agent(1), doc)  # member 0 reports the parent first: its report counts
+    deposits.deposit(paths, 1, 0, agent(1), doc)  # member 0 reports the parent first: its report counts
     sel = _decide(paths, cfg, 1, {0, 1})
     assert sel["winner"] in ("branch", "parent") and sel["margin"] == 1
     if "parent_eval_returns" in garbled or "parent_eval_lengths" in garbled:
@@ -751,29 +741,29 @@ def test_a_garbled_episode_report_cannot_break_a_margin_selection(tmp_path, garb
 
 
 def test_the_selector_parses_the_winners_agent_once_and_shared_agents_are_read_only(tmp_path, monkeypatch):
-    from rl_pool.agent import Agent
+    from rl_pool.maths.agent import Agent
 
     paths, cfg = make_pool(tmp_path / "p", pool_size=2)
-    _deposit(paths, 1, 0, 1.0, seed=11)
-    _deposit(paths, 1, 1, 2.0, seed=12)
-    like = _like(paths)
+    deposit(paths, 1, 0, 1.0, seed=11)
+    deposit(paths, 1, 1, 2.0, seed=12)
+    like = like_agent(paths)
     parsed = []
-    monkeypatch.setattr(pool, "_parsed", collections.OrderedDict())  # whatever earlier tests parsed
+    monkeypatch.setattr(deposits, "_parsed", collections.OrderedDict())  # whatever earlier tests parsed
     real = Agent.from_bytes.__func__
     monkeypatch.setattr(Agent, "from_bytes", classmethod(lambda cls, data, source="agent":
                                                             parsed.append(source) or real(cls, data, source)))
-    sel = pool.select(paths, 1, cfg, like, {0, 1}, "complete", pool.read_selected(paths, 0))
+    sel = pool.select(paths, 1, cfg, like, {0, 1}, "complete", deposits.read_selected(paths, 0))
     sel, _ = pool.publish_selection(paths, sel, by=0)
-    trained_from = pool.load_selected_agent(paths, 1, sel, like=like)
+    trained_from = deposits.load_selected_agent(paths, 1, sel, like=like)
     assert parsed == ["member-001.npz"]  # select read it; training starts from the same parse
     assert trained_from.to_bytes() == agent(12).to_bytes()
     with pytest.raises(ValueError, match="read-only"):
         next(iter(trained_from.params.values()))[...] = 0.0
     # other bytes are parsed on their own, whatever the name
-    _deposit(paths, 2, 0, 5.0, seed=13)
+    deposit(paths, 2, 0, 5.0, seed=13)
     sel2 = pool.select(paths, 2, cfg, like, {0}, "complete", sel)
     sel2, _ = pool.publish_selection(paths, sel2, by=0)
-    assert pool.load_selected_agent(paths, 2, sel2).to_bytes() == agent(13).to_bytes()
+    assert deposits.load_selected_agent(paths, 2, sel2).to_bytes() == agent(13).to_bytes()
     assert parsed == ["member-001.npz", "member-000.npz"]
 
 
@@ -792,11 +782,11 @@ def test_a_restart_publishes_the_plain_copy_a_decision_lacks(tmp_path):
     members decide from the decision and would never write the copy; a restart writes it with the
     decided bytes, leaves an existing copy alone and writes nothing for an undecided iteration."""
     paths, cfg = make_pool(tmp_path / "p", pool_size=1)
-    _deposit(paths, 1, 0, 1.0)
+    deposit(paths, 1, 0, 1.0)
     doc = _decide(paths, cfg, 1, [0])
     decided = paths.decision(paths.selected(1))
     os.unlink(paths.selected(1))
-    pool.make_iteration_dir(paths, 2)
+    deposits.make_iteration_dir(paths, 2)
     pool.publish_missing_selections(paths, [1, 2])
     with open(paths.selected(1), "rb") as fh:
         assert fh.read() == decided

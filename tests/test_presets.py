@@ -4,7 +4,7 @@ from dataclasses import fields
 
 import pytest
 
-from rl_pool import cli, presets
+from rl_pool.commands import cli, presets
 from rl_pool.config import MemberConfig, PoolConfig
 
 POOL_FIELDS = {f.name for f in fields(PoolConfig)}
@@ -54,7 +54,7 @@ def test_preset_batch_size_goes_with_its_own_train_episodes(name, tmp_path):
 def test_a_preset_grown_to_more_members_keeps_its_rates(size, want, tmp_path, monkeypatch):
     # the first member at the preset's first (guard) rate, the rest at its last; never the
     # linear defaults (0.01, then 0.1), ten to a hundred times the MLP preset's rates
-    from rl_pool import launch
+    from rl_pool.commands import launch
 
     seen = {}
     monkeypatch.setattr(launch, "launch", lambda pool_dir, requested, opts, lrs, *a, **kw: seen.update(lrs=lrs))

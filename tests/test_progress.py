@@ -1,6 +1,5 @@
 """Live progress: the tracker's figures, `status --watch` on a terminal (pty) and on a pipe, the launch view."""
 
-import json
 import os
 import pty
 import re
@@ -12,77 +11,18 @@ import time
 
 import pytest
 
-from rl_pool import claim, fsutil, pool, progress, status
-from rl_pool.heartbeat import HOST
+from rl_pool.commands import progress, status
 
 from .conftest import ROOT, SHORT
-from .helpers import make_pool
-
-T0 = 1_700_000_000.0  # pool creation time of the fake pools
-STEPS = {"train_steps": 1000, "eval_steps": 100, "parent_eval_steps": 100}  # 1200 env steps per member
-
-
-def _sign(paths, doc):
-    """Sign as a key holder does (pools made by this rl-pool verify what decides anything)."""
-    sign = getattr(paths, "sign", None)
-    return sign(doc) if sign is not None else doc
-
-
-def write_iteration(paths, i, returns, winner="branch", t=None, lrs=None, parent_return=None):
-    """Pool files of one decided iteration, as members write them: deposits, waits, selection.
-
-    ``returns``: each member's eval return; the best branch wins unless ``winner`` says "parent"
-    (then ``parent_return`` is the selected return and the agent is the previous selection's).
-    """
-    t = T0 + 2.0 * i if t is None else t
-    os.makedirs(paths.iteration(i), exist_ok=True)
-    lrs = lrs or [0.01 * 10 ** m for m in range(len(returns))]
-    for m, ret in enumerate(returns):
-        fsutil.write_json(paths.deposit_json(i, m), _sign(paths, {
-            "iteration": i, "member": m, "eval_return": ret, "learning_rate": lrs[m],
-            "train_seconds": 0.5, "eval_seconds": 0.1, "train_return_mean": ret - 1.0, "time": t - 0.1,
-            "agent_sha256": "0" * 64, **STEPS}))
-        fsutil.write_json(paths.wait_json(i, m), {"iteration": i, "member": m, "wait_seconds": 0.01 * (m + 1)})
-    best_m = max(range(len(returns)), key=lambda m: (returns[m], -m))
-    prev = pool.read_selected(paths, i - 1)
-    if winner == "branch":
-        sel = {"winner": "branch", "member": best_m, "eval_return": returns[best_m],
-               "agent": paths.rel(paths.deposit_npz(i, best_m))}
-    else:
-        sel = {"winner": winner, "member": None, "eval_return": parent_return, "agent": prev["agent"]}
-    considered = [{"member": m, "eval_return": r} for m, r in enumerate(returns)]
-    claim.create_once(paths.selected(i), fsutil.dumps(_sign(paths, {
-        "iteration": i, "considered": considered, "skipped": [], "quorum_reason": "complete",
-        "agent_sha256": "0" * 64, "time": t, **sel})))
-
-
-def fake_pool(root, returns_by_iteration, pool_size=2, **kw):
-    paths, _ = make_pool(root, pool_size=pool_size, **kw)
-    doc = json.loads(open(paths.pool_json).read())
-    doc["created"] = T0
-    fsutil.write_json(paths.pool_json, _sign(paths, doc))  # test-only rewrite of the create-once file: a known clock
-    for i, rets in enumerate(returns_by_iteration, start=1):
-        if isinstance(rets, tuple):  # (returns, winner, parent_return)
-            write_iteration(paths, i, rets[0], winner=rets[1], parent_return=rets[2])
-        else:
-            write_iteration(paths, i, rets)
-    return paths
-
-
-def heartbeat(paths, m, state, iteration, target=20, last_return=None, **extra):
-    fsutil.write_json(paths.heartbeat(m), _sign(paths, {
-        "member": m, "pid": os.getpid(), "host": HOST, "beat": 1, "state": state, "iteration": iteration,
-        "target": target, "learning_rate": 0.01 * 10 ** m, "last_return": last_return, "time": time.time(),
-        **extra}))
-
+from .helpers import T0, fake_pool, write_heartbeat, write_iteration
 
 HISTORY = [[10.0, 12.0], [15.0, 11.0], ([14.0, 13.0], "parent", 15.5), [20.0, 25.0], [24.0, 19.0]]
 
 
 def test_tracker_figures(tmp_path):
     paths = fake_pool(tmp_path / "p", HISTORY)
-    heartbeat(paths, 0, "training", 6, last_return=24.0)
-    heartbeat(paths, 1, "waiting", 6, last_return=19.0)
+    write_heartbeat(paths, 0, "training", 6, last_return=24.0)
+    write_heartbeat(paths, 1, "waiting", 6, last_return=19.0)
     snap = progress.Tracker(paths.root, since=time.time() - 65).poll()
     assert snap.iteration == 5 and snap.target == 20 and snap.pool_size == 2 and snap.env == "Swimmer-v5"
     assert snap.last["eval_return"] == 24.0 and snap.last["winner"] == "branch"
@@ -116,7 +56,7 @@ def test_rates_leave_out_downtime(tmp_path):
     # the pool was stopped for an hour after iteration 4, then went on at 2 s per iteration
     for i in range(5, 9):
         write_iteration(paths, i, [3.0, 4.0], t=T0 + 3600 + 2.0 * i)
-    heartbeat(paths, 0, "training", 9)
+    write_heartbeat(paths, 0, "training", 9)
     snap = progress.Tracker(paths.root).poll()
     assert snap.seconds_per_iteration == pytest.approx(2.0)
     assert snap.steps_per_second == pytest.approx(1200.0)
@@ -124,8 +64,8 @@ def test_rates_leave_out_downtime(tmp_path):
 
 def test_no_time_left_while_no_member_runs(tmp_path):
     paths = fake_pool(tmp_path / "p", HISTORY)
-    heartbeat(paths, 0, "stopped", 6, error="stopped by SIGTERM")
-    heartbeat(paths, 1, "stopped", 6, error="stopped by SIGTERM")
+    write_heartbeat(paths, 0, "stopped", 6, error="stopped by SIGTERM")
+    write_heartbeat(paths, 1, "stopped", 6, error="stopped by SIGTERM")
     snap = progress.Tracker(paths.root).poll()
     assert snap.eta is None and "left -" in progress.line(snap)
 
@@ -159,14 +99,14 @@ def _wait_for(fd, text, timeout=20.0):
 
 def test_watch_on_a_pipe_prints_plain_lines_when_something_changes(tmp_path):
     paths = fake_pool(tmp_path / "p", HISTORY)
-    heartbeat(paths, 0, "training", 6)
-    heartbeat(paths, 1, "training", 6)
+    write_heartbeat(paths, 0, "training", 6)
+    write_heartbeat(paths, 1, "training", 6)
     proc = subprocess.Popen(_watch(paths.root, "--interval", 0.3), stdout=subprocess.PIPE,
                             stderr=subprocess.PIPE, cwd=ROOT)
     try:
         first = _wait_for(proc.stdout.fileno(), "iteration 5/20")
         write_iteration(paths, 6, [30.0, 28.0])
-        heartbeat(paths, 0, "evaluating", 7)
+        write_heartbeat(paths, 0, "evaluating", 7)
         later = _wait_for(proc.stdout.fileno(), "iteration 6/20")
         time.sleep(1.0)  # nothing changes now: no more lines
         quiet = _read_for(proc.stdout.fileno(), 0.5)
@@ -184,8 +124,8 @@ def test_watch_on_a_pipe_prints_plain_lines_when_something_changes(tmp_path):
 
 def test_watch_on_a_terminal_redraws_in_place(tmp_path):
     paths = fake_pool(tmp_path / "p", HISTORY)
-    heartbeat(paths, 0, "training", 6, last_return=24.0)
-    heartbeat(paths, 1, "waiting", 6, last_return=19.0)
+    write_heartbeat(paths, 0, "training", 6, last_return=24.0)
+    write_heartbeat(paths, 1, "waiting", 6, last_return=19.0)
     master, slave = pty.openpty()
     env = dict(os.environ, TERM="xterm-256color", COLUMNS="120", LINES="40")
     proc = subprocess.Popen(_watch(paths.root, "--interval", 0.2), stdin=slave, stdout=slave, stderr=slave,

@@ -16,7 +16,8 @@ import shutil
 
 import pytest
 
-from rl_pool import envs, pool, trainer
+from rl_pool.learning import envs, trainer
+from rl_pool.protocol import deposits, layout, pool
 from rl_pool.versions import versions
 
 DATA = os.path.join(os.path.dirname(__file__), "data", "pool-before-merge")
@@ -31,14 +32,14 @@ def old_pool(tmp_path, monkeypatch):
     monkeypatch.setenv("RL_POOL_KEY", KEY)
     root = tmp_path / "pool"
     shutil.copytree(DATA, root)
-    paths = pool.Paths(str(root))
+    paths = layout.Paths(str(root))
     cfg = pool.read_config(paths)
     pool.attach_key(paths)
     return paths, cfg
 
 
 def _decided(paths, i):
-    return {k: v for k, v in pool.read_selected(paths, i).items() if k not in UNSIGNED}
+    return {k: v for k, v in deposits.read_selected(paths, i).items() if k not in UNSIGNED}
 
 
 def test_the_old_pool_reads_as_the_rule_it_ran(old_pool):
@@ -48,12 +49,12 @@ def test_the_old_pool_reads_as_the_rule_it_ran(old_pool):
 
 def test_every_selection_decides_again_bit_for_bit(old_pool):
     paths, cfg = old_pool
-    like = pool.load_selected_agent(paths, 0)
-    last = pool.last_selected(paths)
+    like = deposits.load_selected_agent(paths, 0)
+    last = deposits.last_selected(paths)
     assert last == 5
     for i in range(1, last + 1):
-        again = pool.select(paths, i, cfg, like, pool.present(paths, i, cfg.pool_size), "complete",
-                            pool.read_selected(paths, i - 1))
+        again = pool.select(paths, i, cfg, like, deposits.present(paths, i, cfg.pool_size), "complete",
+                            deposits.read_selected(paths, i - 1))
         assert json.loads(json.dumps(again)) == _decided(paths, i), f"iteration {i}"
 
 
@@ -63,11 +64,11 @@ def test_every_deposit_trains_again_bit_for_bit(old_pool):
     paths, cfg = old_pool
     kwargs = dict(cfg.env_kwargs, max_episode_steps=cfg.max_episode_steps)
     env_list = [envs.make(cfg.env, kwargs)[0] for _ in range(max(cfg.batch_episodes, cfg.eval_episodes))]
-    for i in range(1, pool.last_selected(paths) + 1):
-        start = pool.load_selected_agent(paths, i - 1)
+    for i in range(1, deposits.last_selected(paths) + 1):
+        start = deposits.load_selected_agent(paths, i - 1)
         for m in range(cfg.pool_size):
             doc = paths.read_json(paths.deposit_json(i, m))
             tr = trainer.train(start, env_list, cfg, doc["learning_rate"], m, i)
-            assert pool.sha256(tr.agent.to_bytes()) == doc["agent_sha256"], f"iteration {i}, member {m}"
+            assert layout.sha256(tr.agent.to_bytes()) == doc["agent_sha256"], f"iteration {i}, member {m}"
             ev = trainer.evaluate(tr.agent, env_list, cfg, i)
             assert ev.returns == doc["eval_returns"]

@@ -7,7 +7,7 @@ import os
 import pytest
 
 from rl_pool import Agent, threads
-from rl_pool.evaluate import evaluate_bytes
+from rl_pool.commands.evaluate import evaluate_bytes
 
 RESULTS = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "results", "swimmer-v5")
 

@@ -3,8 +3,9 @@
 import numpy as np
 import pytest
 
-from rl_pool import envs, normalizer, policy
-from rl_pool.rollout import run_episodes
+from rl_pool.learning import envs
+from rl_pool.learning.rollout import run_episodes
+from rl_pool.maths import normalizer, policy
 
 
 def _one_at_a_time(env, params, spec, norm, low, high, seed, max_steps):

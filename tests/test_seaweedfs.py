@@ -16,11 +16,11 @@ from pathlib import Path
 
 import pytest
 
-from rl_pool import claim
+from rl_pool.protocol import claim
 
 from .conftest import ROOT, SHORT, spawn
+from .helpers import racer
 from .seaweed import Seaweed, unavailable
-from .test_claim import _racer
 
 # real processes on a real cluster: out of the fast tiers (-m 'not multiprocess'); -m seaweedfs runs it alone
 pytestmark = [pytest.mark.seaweedfs, pytest.mark.multiprocess]
@@ -68,7 +68,7 @@ def _eventually(fn, timeout=5.0):
 
 def test_doctor_on_both_mounts_at_once_finds_the_link_race_and_exclusive_renames(seaweed):
     a, b = _same_dir(seaweed, "doctor")
-    cmd = [sys.executable, "-m", "rl_pool.doctor", "--peer", "--rounds", "30", "--json",
+    cmd = [sys.executable, "-m", "rl_pool.protocol.doctor", "--peer", "--rounds", "30", "--json",
            "--peer-timeout", "60"]
     procs = [subprocess.Popen([*cmd, d], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
                               cwd=ROOT) for d in (a, b)]
@@ -95,7 +95,7 @@ def test_claims_racing_from_both_mounts_have_one_winner_that_both_mounts_read(se
     roots = [a, b] * per_mount
     ctx = mp.get_context("spawn")
     barrier, out = ctx.Barrier(len(roots)), ctx.Queue()
-    procs = [ctx.Process(target=_racer, args=(root, names, me, barrier, out))
+    procs = [ctx.Process(target=racer, args=(root, names, me, barrier, out))
              for me, root in enumerate(roots)]
     for p in procs:
         p.start()
@@ -171,7 +171,7 @@ def _wait_for(path, pred, timeout=120.0):
 def test_kill_and_restart_across_mounts_replays_the_local_disk_history(seaweed, tmp_path):
     """Member 0 on mount A, member 1 on mount B, SIGKILLed while training and restarted on B:
     the pool's history (every selection, score and agent hash) equals a local-disk run's."""
-    from .test_multiprocess import ITERS, history, run_pool
+    from .helpers import ITERS, history, run_pool
 
     reference = run_pool(tmp_path / "local")
     a, b = _same_dir(seaweed, "killed")

@@ -10,11 +10,11 @@ from importlib import metadata
 
 import pytest
 
-from rl_pool import fsutil, status, versions
+from rl_pool import fsutil, versions
+from rl_pool.commands import status
 
 from .conftest import ROOT, rl_pool
-from .helpers import make_pool
-from .test_progress import _sign
+from .helpers import make_pool, sign
 
 LOCK = os.path.join(ROOT, "constraints.txt")
 SETUP = os.path.join(ROOT, "shell", "setup.sh")
@@ -72,7 +72,7 @@ def test_status_shows_the_versions_recorded_in_pool_json(tmp_path):
     recorded = json.loads(rl_pool("status", paths.root, "--json", check=0).stdout)["versions"]
     assert recorded == doc.get("versions")  # what pool.json says (None for a pool made before versions)
     recorded = versions.versions() | {"jax": "0.0.1\x1b[31m"}  # a pool made elsewhere, and a hostile string
-    fsutil.write_json(paths.pool_json, _sign(paths, doc | {"versions": recorded}))
+    fsutil.write_json(paths.pool_json, sign(paths, doc | {"versions": recorded}))
     st = json.loads(rl_pool("status", paths.root, "--json", check=0).stdout)
     assert st["versions"] == recorded
     table = rl_pool("status", paths.root, check=0).stdout
@@ -83,7 +83,7 @@ def test_status_shows_the_versions_recorded_in_pool_json(tmp_path):
     assert f"jax {metadata.version('jax')}" in here and "numpy" not in here
     assert status.recorded_versions({"versions": "3.11"}) is None
     doc.pop("versions", None)
-    fsutil.write_json(paths.pool_json, _sign(paths, doc))
+    fsutil.write_json(paths.pool_json, sign(paths, doc))
     assert json.loads(rl_pool("status", paths.root, "--json", check=0).stdout)["versions"] is None
     assert "versions:" not in rl_pool("status", paths.root, check=0).stdout
 

@@ -6,10 +6,10 @@ import time
 
 import pytest
 
-from rl_pool import barrier, heartbeat
 from rl_pool.errors import SignalLatch, Stopped
+from rl_pool.protocol import barrier, heartbeat
 
-from .test_pool_protocol import _deposit, _like, make_pool
+from .helpers import deposit, like_agent, make_pool
 
 
 def _lose_a_signal_in_a_finaliser() -> None:
@@ -53,7 +53,7 @@ def test_a_waiting_member_stops_at_its_next_poll_when_the_signal_was_lost(tmp_pa
     lost = []
     monkeypatch.setattr(sys, "unraisablehook", lambda u: lost.append(u.exc_type))
     paths, cfg = make_pool(tmp_path / "p", pool_size=2)
-    _deposit(paths, 1, 0, 1.0)
+    deposit(paths, 1, 0, 1.0)
     latch = SignalLatch(Stopped)
     old = latch.install((signal.SIGTERM,))
     try:
@@ -61,7 +61,7 @@ def test_a_waiting_member_stops_at_its_next_poll_when_the_signal_was_lost(tmp_pa
         signal.signal(signal.SIGALRM, lambda *a: _lose_a_signal_in_a_finaliser())
         t0 = time.monotonic()
         with pytest.raises(Stopped):
-            barrier.barrier(paths, 1, cfg, 0, _like(paths), quorum=2, timeout=60,
+            barrier.barrier(paths, 1, cfg, 0, like_agent(paths), quorum=2, timeout=60,
                          liveness=heartbeat.Liveness(paths, 60), poll_max=0.01, check=latch.check)
         assert 0.2 <= time.monotonic() - t0 < 1.0 and lost == [Stopped]
     finally:

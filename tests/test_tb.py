@@ -6,9 +6,10 @@ import os
 
 import pytest
 
-from rl_pool import pool, status, tb
+from rl_pool.commands import status, tb
+from rl_pool.protocol import deposits, layout
 
-from .test_progress import fake_pool, write_iteration
+from .helpers import fake_pool, write_iteration
 
 pytest.importorskip("tensorboard", reason="TensorBoard (test extra) reads the event files back")
 from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
@@ -30,7 +31,7 @@ def _members_loop(paths, upto, first=1, pool_size=2):
         board.catch_up(first - 1)
         for i in range(first, upto + 1):
             metrics = json.loads(open(paths.deposit_json(i, m)).read())
-            board.record(i, pool.read_selected(paths, i), metrics, 0.01 * (m + 1))
+            board.record(i, deposits.read_selected(paths, i), metrics, 0.01 * (m + 1))
         board.close()
 
 
@@ -67,7 +68,7 @@ def test_one_run_per_member_and_one_for_the_pool_agree_with_the_history(tmp_path
     # wall time is when the deposit / selection was made: TensorBoard's WALL axis is the pool's clock
     ea = EventAccumulator(tb.pool_run(paths))
     ea.Reload()
-    sel = pool.read_selected(paths, 3)
+    sel = deposits.read_selected(paths, 3)
     assert ea.Scalars("return/eval")[2].wall_time == pytest.approx(sel["time"])
 
 
@@ -78,7 +79,7 @@ def test_restart_after_a_kill_shows_each_step_once_with_the_values_on_disk(tmp_p
     for m, b in enumerate(boards):
         b.catch_up(0)
         for i in (1, 2, 3):
-            b.record(i, pool.read_selected(paths, i), None, 0.01 * (m + 1))
+            b.record(i, deposits.read_selected(paths, i), None, 0.01 * (m + 1))
     for run in (tb.member_run(paths, 0), tb.pool_run(paths)):
         (name,) = [n for n in os.listdir(run) if ".tfevents." in n]
         with open(os.path.join(run, name), "r+b") as fh:
@@ -99,7 +100,7 @@ def test_restart_rewrites_only_after_the_last_mark(tmp_path, monkeypatch):
     # a later life starting at iteration 5 rewrites 4 only (from the files) and goes on with 5
     b = tb.Board(paths, 0, 2, on=True)
     b.catch_up(4)
-    b.record(5, pool.read_selected(paths, 5), None, 0.01)
+    b.record(5, deposits.read_selected(paths, 5), None, 0.01)
     b.close()
     write_iteration(paths, 6, [30.0, 31.0])
     assert [s for s, _ in scalars(tb.pool_run(paths))["return/eval"]] == [1, 2, 3, 4, 5]
@@ -115,8 +116,8 @@ def test_the_pool_run_fills_in_selections_its_writer_skipped(tmp_path):
     paths = fake_pool(tmp_path / "p", HISTORY)
     b = tb.Board(paths, 0, 2, on=True)
     b.catch_up(0)
-    b.record(1, pool.read_selected(paths, 1), None, 0.0)
-    b.record(4, pool.read_selected(paths, 4), None, 0.0)  # fell behind: 2 and 3 were decided without it
+    b.record(1, deposits.read_selected(paths, 1), None, 0.0)
+    b.record(4, deposits.read_selected(paths, 4), None, 0.0)  # fell behind: 2 and 3 were decided without it
     b.close()
     assert [s for s, _ in scalars(tb.pool_run(paths))["return/eval"]] == [1, 2, 3, 4]
     assert [s for s, _ in scalars(tb.member_run(paths, 0))["return/eval"]] == [1, 4]
@@ -127,7 +128,7 @@ def test_switched_off_or_failing_never_stops_a_member(tmp_path, monkeypatch):
     monkeypatch.setenv(tb.ENV_SWITCH, "0")
     b = tb.Board(paths, 0, 2)
     b.catch_up(5)
-    b.record(5, pool.read_selected(paths, 5), None, 0.0)
+    b.record(5, deposits.read_selected(paths, 5), None, 0.0)
     b.close()
     assert not os.path.exists(tb.tb_dir(paths))
     monkeypatch.delenv(tb.ENV_SWITCH)
@@ -139,7 +140,7 @@ def test_switched_off_or_failing_never_stops_a_member(tmp_path, monkeypatch):
     try:
         b = tb.Board(paths, 0, 2)
         b.catch_up(5)
-        b.record(5, pool.read_selected(paths, 5), None, 0.0)
+        b.record(5, deposits.read_selected(paths, 5), None, 0.0)
         b.close()
     finally:
         logging.getLogger("rl_pool").removeHandler(handler)
@@ -153,7 +154,7 @@ def test_a_real_pool_writes_event_files_that_match_its_history(tmp_path):
 
     d = tmp_path / "real"
     rl_pool("launch", "--pool-dir", d, "--pool-size", 2, "--iterations", 3, *SHORT, "--quiet", check=0)
-    paths = pool.Paths(d)
+    paths = layout.Paths(d)
     assert os.path.isdir(tb.tb_dir(paths)), "a pool run writes TensorBoard event files"
     hist = status.status(paths.root)["history"]
     assert [s for s, _ in scalars(tb.pool_run(paths))["return/eval"]] == [h["iteration"] for h in hist]

@@ -15,7 +15,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .errors import EnvError
+from rl_pool.errors import EnvError
 
 
 @dataclass(frozen=True)

@@ -16,9 +16,9 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from . import normalizer, policy
-from .errors import AgentFileError
-from .normalizer import NormState
+from rl_pool.errors import AgentFileError
+from rl_pool.maths import normalizer, policy
+from rl_pool.maths.normalizer import NormState
 
 FORMAT = "rl-pool-agent"
 #: Format 2: named parameter arrays (``param.NAME``, ``adam_m.NAME``, ``adam_v.NAME``) and a policy spec
@@ -123,7 +123,7 @@ class AgentMeta:
 
 @dataclass(frozen=True)
 class Agent:
-    """A Beta policy (``params``: named arrays, see :mod:`rl_pool.policy`) with its normaliser
+    """A Beta policy (``params``: named arrays, see :mod:`rl_pool.maths.policy`) with its normaliser
     and optimiser state (Adam moments named like ``params``)."""
 
     meta: AgentMeta
@@ -137,7 +137,7 @@ class Agent:
     @classmethod
     def initial(cls, meta: AgentMeta, seed: int = 0, shape: float | None = None) -> Agent:
         """The iteration-0 agent: initial parameters from ``seed`` (Beta shapes ``shape`` at the start,
-        see :func:`rl_pool.policy.init_params`), empty normaliser and moments."""
+        see :func:`rl_pool.maths.policy.init_params`), empty normaliser and moments."""
         params = policy.init_params(meta.spec, meta.obs_dim, meta.act_dim, seed, shape)
         zeros = {k: np.zeros_like(v) for k, v in params.items()}
         return cls(meta, params, normalizer.init(meta.obs_dim), zeros, dict(zeros), 0.0)
@@ -195,7 +195,7 @@ class Agent:
 
     def save(self, path: str | os.PathLike) -> None:
         """Write atomically (temp file, fsync, rename)."""
-        from .fsutil import atomic_write
+        from rl_pool.fsutil import atomic_write
 
         atomic_write(path, self.to_bytes())
 
@@ -263,7 +263,7 @@ class Agent:
 
     @classmethod
     def load(cls, path: str | os.PathLike) -> Agent:
-        from . import fsutil
+        from rl_pool import fsutil
 
         try:  # bounded and non-blocking: a FIFO or /dev/zero named as an agent is refused, not read
             data = fsutil.read_bytes(path, fsutil.AGENT_MAX_BYTES, follow=True)

@@ -11,10 +11,10 @@ import threading
 import time
 from typing import TYPE_CHECKING
 
-from . import fsutil
+from rl_pool import fsutil
 
 if TYPE_CHECKING:
-    from .pool import Paths
+    from rl_pool.protocol.layout import Paths
 
 log = logging.getLogger("rl_pool")
 

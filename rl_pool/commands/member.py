@@ -20,10 +20,13 @@ import sys
 import time
 import traceback
 
-from . import barrier, envs, fsutil, heartbeat, pool, selection, status, tb, trainer
-from .agent import Agent, AgentMeta
-from .config import MemberConfig, PoolConfig
-from .errors import SignalLatch, Stopped, UsageError
+from rl_pool import fsutil
+from rl_pool.commands import status, tb
+from rl_pool.config import MemberConfig, PoolConfig
+from rl_pool.errors import SignalLatch, Stopped, UsageError
+from rl_pool.learning import envs, trainer
+from rl_pool.maths.agent import Agent, AgentMeta
+from rl_pool.protocol import barrier, deposits, heartbeat, layout, pool, selection
 
 log = logging.getLogger("rl_pool")
 
@@ -52,7 +55,7 @@ def make_initial(cfg: PoolConfig):
     return Agent.initial(meta, seed=cfg.seed, shape=cfg.init_shape or None), cfg
 
 
-def check_arguments(paths: pool.Paths, requested: dict, members: list[MemberConfig]) -> PoolConfig:
+def check_arguments(paths: layout.Paths, requested: dict, members: list[MemberConfig]) -> PoolConfig:
     """Refuse bad arguments before anything is created or changed on disk; the merged pool config."""
     saved = pool.read_config(paths) if os.path.exists(paths.pool_json) else None
     cfg = PoolConfig.merged(requested, saved, where=f"pool {paths.root}")
@@ -61,8 +64,8 @@ def check_arguments(paths: pool.Paths, requested: dict, members: list[MemberConf
     return cfg
 
 
-def _setup_logging(paths: pool.Paths, member: int, quiet: bool) -> None:
-    fmt = logging.Formatter(f"%(asctime)s {pool.member_name(member)} %(levelname)s %(message)s")
+def _setup_logging(paths: layout.Paths, member: int, quiet: bool) -> None:
+    fmt = logging.Formatter(f"%(asctime)s {layout.member_name(member)} %(levelname)s %(message)s")
     log.setLevel(logging.INFO)
     log.handlers.clear()
     log.propagate = False
@@ -77,7 +80,7 @@ def _setup_logging(paths: pool.Paths, member: int, quiet: bool) -> None:
         log.addHandler(sh)
 
 
-def _check_not_running(paths: pool.Paths, member: int, stale_after: float) -> None:
+def _check_not_running(paths: layout.Paths, member: int, stale_after: float) -> None:
     hb = heartbeat.read_heartbeat(paths, member)
     if not hb or hb.get("host") != heartbeat.HOST or hb.get("state") in heartbeat.TERMINAL_STATES:
         return
@@ -102,7 +105,7 @@ def run(pool_dir: str, requested: dict, mc: MemberConfig, quiet: bool = False) -
     # A log line that cannot be written (full disk) must not print a traceback: the member
     # says what went wrong itself, in one line (see _disk_error).
     logging.raiseExceptions = False
-    paths = pool.Paths(pool_dir)
+    paths = layout.Paths(pool_dir)
     me = mc.member
     try:
         check_arguments(paths, requested, [mc])
@@ -114,7 +117,7 @@ def run(pool_dir: str, requested: dict, mc: MemberConfig, quiet: bool = False) -
             return _disk_error(paths, me, None, exc, quiet)
         raise
 
-    last = pool.last_selected(paths)
+    last = deposits.last_selected(paths)
     # A killed writer's temp files sit where the pool was when it died: near the last selection.
     pool.remove_dead_temps(paths.root, paths.members,
                            *(paths.iteration(k) for k in range(max(0, last - 2), last + 2)))
@@ -173,7 +176,7 @@ def disk_error_line(member: int, exc: OSError, root: str) -> str:
             + "; free space (or make the pool writable) and run it again to resume")
 
 
-def _disk_error(paths: pool.Paths, member: int, hb: heartbeat.Heartbeat | None, exc: OSError, quiet: bool) -> int:
+def _disk_error(paths: layout.Paths, member: int, hb: heartbeat.Heartbeat | None, exc: OSError, quiet: bool) -> int:
     """Stop with one line on stderr, in the log and in the heartbeat (each only if it can still be
     written). Every file was written whole or not at all, so a restart resumes exactly."""
     line = disk_error_line(member, exc, paths.root)
@@ -190,12 +193,12 @@ def _disk_error(paths: pool.Paths, member: int, hb: heartbeat.Heartbeat | None, 
     return EXIT_DISK
 
 
-def _loop(paths: pool.Paths, cfg: PoolConfig, mc: MemberConfig, hb: heartbeat.Heartbeat, first: int) -> None:
+def _loop(paths: layout.Paths, cfg: PoolConfig, mc: MemberConfig, hb: heartbeat.Heartbeat, first: int) -> None:
     me = mc.member
-    from . import learner
+    from rl_pool.maths import learner
 
     learner.enable_compilation_cache()
-    like = pool.load_selected_agent(paths, 0)
+    like = deposits.load_selected_agent(paths, 0)
     kwargs = dict(cfg.env_kwargs, max_episode_steps=cfg.max_episode_steps)
     env_list = [envs.make(cfg.env, kwargs)[0] for _ in range(max(cfg.batch_episodes, cfg.eval_episodes))]
     liveness = heartbeat.Liveness(paths, mc.heartbeat_timeout)
@@ -203,7 +206,7 @@ def _loop(paths: pool.Paths, cfg: PoolConfig, mc: MemberConfig, hb: heartbeat.He
     log.info("member %d of %d on %s, lr %g, from iteration %d to %d (quorum %d)",
              me, cfg.pool_size, cfg.env, mc.learning_rate, first, mc.iterations, quorum)
 
-    prev = pool.read_selected(paths, first - 1)
+    prev = deposits.read_selected(paths, first - 1)
     pool.update_best(paths, prev)  # in case a kill skipped it
     lr = _learning_rate_for(paths, cfg, mc, first)
     board = tb.Board(paths, me, cfg.pool_size)  # TensorBoard: POOL/tb/member-III/ (member 0 also POOL/tb/pool/)
@@ -212,19 +215,19 @@ def _loop(paths: pool.Paths, cfg: PoolConfig, mc: MemberConfig, hb: heartbeat.He
         i = first
         while i <= mc.iterations:
             _stop.check()
-            if pool.read_selected(paths, i) is not None:
+            if deposits.read_selected(paths, i) is not None:
                 # Decided without us (we were stopped or slow): rejoin where the pool is now.
-                i = max(pool.last_selected(paths) + 1, i + 1)
+                i = max(deposits.last_selected(paths) + 1, i + 1)
                 log.warning("pool went on without this member; rejoining at iteration %d", i)
                 lr = _learning_rate_for(paths, cfg, mc, i)
-                prev = pool.read_selected(paths, i - 1)
+                prev = deposits.read_selected(paths, i - 1)
                 continue
-            pool.make_iteration_dir(paths, i)
+            deposits.make_iteration_dir(paths, i)
             if os.path.lexists(paths.deposit_json(i, me)):
                 log.info("iteration %d: own deposit already on disk; waiting for the others", i)
                 mine = metrics = None
             else:
-                start = pool.load_selected_agent(paths, i - 1, prev, like=like)
+                start = deposits.load_selected_agent(paths, i - 1, prev, like=like)
                 hb.set(state="training", iteration=i)
                 tr = trainer.train(start, env_list, cfg, lr, me, i)
                 hb.update(state="evaluating")  # shown by the next periodic beat: one write less per iteration
@@ -249,7 +252,7 @@ def _loop(paths: pool.Paths, cfg: PoolConfig, mc: MemberConfig, hb: heartbeat.He
                     "parent": {"iteration": i - 1, "member": prev.get("member")},
                     "host": socket.gethostname(), "pid": os.getpid(), "time": time.time(),
                 }
-                pool.deposit(paths, i, me, tr.agent, metrics)
+                deposits.deposit(paths, i, me, tr.agent, metrics)
                 mine = ev.mean
                 hb.update(last_return=mine)
             hb.set_soon(state="waiting", iteration=i)  # a short wait is not worth a write
@@ -263,7 +266,7 @@ def _loop(paths: pool.Paths, cfg: PoolConfig, mc: MemberConfig, hb: heartbeat.He
             if res.created and i - mc.keep_iterations >= 1:
                 pool.collect_garbage(paths, i - mc.keep_iterations)
             log.info("iteration %d: selected %s (eval return %s); mine %s; waited %.3fs",
-                     i, status.describe(sel, origin=False), _fmt(sel.get("eval_return")), _fmt(mine), res.waited)
+                     i, status.describe(sel, origin=False), status.fixed(sel.get("eval_return")), status.fixed(mine), res.waited)
             board.record(i, sel, metrics, res.waited)
             lr = _next_learning_rate(paths, cfg, mc, sel, lr)
             # written with the next state change (training, a moment from now) or the final one
@@ -274,7 +277,7 @@ def _loop(paths: pool.Paths, cfg: PoolConfig, mc: MemberConfig, hb: heartbeat.He
         board.close()  # flushes what the last seconds recorded, on every way out
 
 
-def _deposit_lr(paths: pool.Paths, i: int, m: int) -> float | None:
+def _deposit_lr(paths: layout.Paths, i: int, m: int) -> float | None:
     try:
         lr = paths.read_json(paths.deposit_json(i, m)).get("learning_rate")
     except (OSError, ValueError, AttributeError):
@@ -282,7 +285,7 @@ def _deposit_lr(paths: pool.Paths, i: int, m: int) -> float | None:
     return float(lr) if isinstance(lr, (int, float)) and lr > 0 else None
 
 
-def _next_learning_rate(paths: pool.Paths, cfg: PoolConfig, mc: MemberConfig, sel: dict | None,
+def _next_learning_rate(paths: layout.Paths, cfg: PoolConfig, mc: MemberConfig, sel: dict | None,
                         own: float) -> float:
     """This member's rate after the selection ``sel`` of an iteration: a function of that iteration's files."""
     if not mc.lr_adapt or sel is None:
@@ -293,22 +296,22 @@ def _next_learning_rate(paths: pool.Paths, cfg: PoolConfig, mc: MemberConfig, se
                                          mc.lr_adapt)
 
 
-def _learning_rate_for(paths: pool.Paths, cfg: PoolConfig, mc: MemberConfig, first: int) -> float:
+def _learning_rate_for(paths: layout.Paths, cfg: PoolConfig, mc: MemberConfig, first: int) -> float:
     """On (re)start: the rate an uninterrupted run would use in iteration ``first``."""
     if not mc.lr_adapt or first <= 1:
         return mc.learning_rate
     own = _deposit_lr(paths, first - 1, mc.member) or mc.learning_rate
-    return _next_learning_rate(paths, cfg, mc, pool.read_selected(paths, first - 1), own)
+    return _next_learning_rate(paths, cfg, mc, deposits.read_selected(paths, first - 1), own)
 
 
-def _score_fallback(paths: pool.Paths, cfg: PoolConfig, prev: dict, like: Agent, env_list, i: int) -> dict:
+def _score_fallback(paths: layout.Paths, cfg: PoolConfig, prev: dict, like: Agent, env_list, i: int) -> dict:
     """After a merge, the scorers of the parent also re-score the merge's fallback (the best agent
     the merge's iteration evaluated) on the same episodes, so selection can go back to it."""
     fb = prev.get("next_fallback")
     if not isinstance(fb, dict):
         return {}
     try:
-        agent = pool.load_named_agent(paths, fb, f"fallback of iteration {i - 1}", paths.selected(i - 1), like)
+        agent = deposits.load_named_agent(paths, fb, f"fallback of iteration {i - 1}", paths.selected(i - 1), like)
     except (RuntimeError, OSError, ValueError) as exc:
         log.warning("iteration %d: cannot re-score the fallback: %s", i, exc)
         return {}
@@ -316,9 +319,5 @@ def _score_fallback(paths: pool.Paths, cfg: PoolConfig, prev: dict, like: Agent,
     return {"fallback_eval_return": fe.mean, "fallback_eval_score": fe.score,
             "fallback_sha256": fb["agent_sha256"], "fallback_eval_seconds": fe.seconds,
             "fallback_eval_steps": fe.steps}
-
-
-def _fmt(x) -> str:
-    return "-" if x is None else f"{x:.2f}"
 
 

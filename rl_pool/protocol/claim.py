@@ -50,7 +50,7 @@ Why not the obvious primitives
 Readers accept only a complete, verified decision: ``data`` starts with one
 line ``rl-pool-once 1 sha256=HEX size=N by=TOKEN`` and the payload must
 match it, and pass the caller's own check (``accept``: the pool's HMAC
-signature, :mod:`rl_pool.keys`). ``TOKEN`` names the proposal, so a proposer
+signature, :mod:`rl_pool.protocol.keys`). ``TOKEN`` names the proposal, so a proposer
 whose rename reply was lost (an NFS retransmission answers ``ENOENT`` or
 ``ENOTEMPTY`` for a rename that happened) still learns that it won.
 
@@ -86,13 +86,11 @@ import hashlib
 import logging
 import os
 import shutil
-import socket
 import stat
 import time
-import uuid
 
-from . import fsutil
-from .errors import UnsafeFile
+from rl_pool import fsutil
+from rl_pool.errors import UnsafeFile
 
 log = logging.getLogger("rl_pool")
 
@@ -134,8 +132,6 @@ def is_decision_dir(name: str) -> bool:
     return name.endswith(SUFFIX) or (tail.isdigit() and head.endswith(SUFFIX))
 
 
-def _token() -> str:
-    return f"{socket.gethostname().split('.')[0]}-{os.getpid()}-{uuid.uuid4().hex[:12]}"
 
 
 def envelope(data: bytes, token: str) -> bytes:
@@ -255,7 +251,7 @@ def create_once(path, data: bytes, root=None, wait: float = 120.0, cap: int = MA
         if got[0] in ("absent", "pending"):
             # A rename replaces an empty directory (a stray mkdir, a SeaweedFS filer that died
             # mid-rename) and fails on one with entries (an honest decision still arriving).
-            token = _token()
+            token = fsutil.writer_token(12)
             err = _propose(decision_dir(path, k), envelope(data, token))
             if err is None:
                 fsutil._fsync_dir(os.path.dirname(os.path.abspath(path)))

@@ -30,7 +30,7 @@ import os
 import secrets
 import stat
 
-from .errors import UsageError
+from rl_pool.errors import UsageError
 
 KEY_BYTES = 32
 SIGNATURE = "signature"

@@ -14,10 +14,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from . import learner, normalizer, returns
-from .agent import Agent
-from .config import PoolConfig
-from .rollout import run_episodes
+from rl_pool.config import PoolConfig
+from rl_pool.learning.rollout import run_episodes
+from rl_pool.maths import learner, normalizer, returns
+from rl_pool.maths.agent import Agent
 
 # Stream tags, so the same (seed, member, iteration) never feeds two purposes.
 _TRAIN_ENV, _TRAIN_ACT, _EVAL_ENV, _EVAL_ACT, _LR_ADAPT = 0, 1, 2, 3, 4

@@ -10,14 +10,14 @@ import os
 import shutil
 import subprocess
 
-from .errors import UsageError
+from rl_pool.errors import UsageError
 
 
 def replay_path(target: str, out: str, steps: int = 0, seed: int = 0, fps: int = 30,
                 width: int = 480, height: int = 360, camera: str | None = None) -> str:
     """Render one episode of the agent; ``camera``: a camera of the model (default: one
     named "track" if the model has it, so a swimmer that travels stays in view)."""
-    from .evaluate import resolve_agent
+    from rl_pool.commands.evaluate import resolve_agent
 
     ext = os.path.splitext(out)[1].lower()
     if ext not in (".gif", ".mp4"):
@@ -28,8 +28,8 @@ def replay_path(target: str, out: str, steps: int = 0, seed: int = 0, fps: int =
         raise UsageError("--width/--height must be >= 16, --fps >= 1, --steps >= 0")
     os.environ.setdefault("MUJOCO_GL", "egl")
     path, data = resolve_agent(target)
-    from . import envs
-    from .agent import Agent
+    from rl_pool.learning import envs
+    from rl_pool.maths.agent import Agent
 
     agent = Agent.from_bytes(data, source=path)
     kwargs = dict(agent.meta.env_kwargs, max_episode_steps=agent.meta.max_episode_steps,

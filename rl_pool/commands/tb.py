@@ -38,7 +38,8 @@ import math
 import os
 import time
 
-from . import fsutil, pool
+from rl_pool import fsutil
+from rl_pool.protocol import deposits, layout
 
 log = logging.getLogger("rl_pool")
 
@@ -58,15 +59,15 @@ MEMBER_TAGS = ("return/eval", "return/train_mean", "member/learning_rate", "memb
 POOL_TAGS = ("return/eval", "return/best", "pool/branch_won", "pool/deposits_considered")
 
 
-def tb_dir(paths: pool.Paths) -> str:
+def tb_dir(paths: layout.Paths) -> str:
     return os.path.join(paths.root, "tb")
 
 
-def member_run(paths: pool.Paths, m: int) -> str:
-    return os.path.join(tb_dir(paths), pool.member_name(m))
+def member_run(paths: layout.Paths, m: int) -> str:
+    return os.path.join(tb_dir(paths), layout.member_name(m))
 
 
-def pool_run(paths: pool.Paths) -> str:
+def pool_run(paths: layout.Paths) -> str:
     return os.path.join(tb_dir(paths), "pool")
 
 
@@ -119,7 +120,7 @@ class Board:
     of short iterations much of its time (docs/cluster.md).
     """
 
-    def __init__(self, paths: pool.Paths, member: int, pool_size: int, on: bool | None = None):
+    def __init__(self, paths: layout.Paths, member: int, pool_size: int, on: bool | None = None):
         self.paths, self.member, self.pool_size = paths, member, pool_size
         self.on = enabled() if on is None else on
         self.runs = [member_run(paths, member)] + ([pool_run(paths)] if member == POOL_WRITER else [])
@@ -139,7 +140,7 @@ class Board:
                 return 0
         except OSError:
             return 0
-        doc = _read(self.paths, os.path.join(run, MARK)) or {}
+        doc = self.paths.read_object(os.path.join(run, MARK)) or {}
         k = doc.get("through")
         return k if isinstance(k, int) and not isinstance(k, bool) and k >= 0 else 0
 
@@ -211,10 +212,10 @@ class Board:
         if self.member == POOL_WRITER and first > 1:
             self.best = self._best_before(first)
         for i in range(first, upto + 1):
-            sel = pool.read_selected(self.paths, i)
+            sel = deposits.read_selected(self.paths, i)
             metrics = self._deposit(i)
             if metrics is not None:
-                wait = (_read(self.paths, self.paths.wait_json(i, self.member)) or {}).get("wait_seconds")
+                wait = (self.paths.read_object(self.paths.wait_json(i, self.member)) or {}).get("wait_seconds")
                 won = None if sel is None else (sel.get("winner", "branch") == "branch"
                                                 and sel.get("member") == self.member)
                 self._write(self.runs[0], i, member_scalars(metrics, wait, won), _num(metrics.get("time")))
@@ -226,16 +227,16 @@ class Board:
     def _best_before(self, first: int) -> float | None:
         """The best selected return before iteration ``first`` (selected.json carries it; best.json
         for pools whose selections do not)."""
-        prev = pool.read_selected(self.paths, first - 1) or {}
+        prev = deposits.read_selected(self.paths, first - 1) or {}
         if isinstance(prev.get("best"), dict):
             return _num(prev["best"].get("eval_return"))
-        b = _read(self.paths, self.paths.best_json, signed=True) or {}
+        b = self.paths.read_object(self.paths.best_json, signed=True) or {}
         it = b.get("iteration")
         return _num(b.get("eval_return")) if isinstance(it, int) and it < first else None
 
     def _deposit(self, i: int) -> dict | None:
         """This member's metrics of iteration ``i`` from its deposit (a key holder's only)."""
-        doc = _read(self.paths, self.paths.deposit_json(i, self.member), signed=True)
+        doc = self.paths.read_object(self.paths.deposit_json(i, self.member), signed=True)
         return doc if doc is not None and doc.get("iteration") == i and doc.get("member") == self.member else None
 
     def record(self, i: int, sel: dict, metrics: dict | None, wait_seconds: float | None) -> None:
@@ -261,7 +262,7 @@ class Board:
             return
         i = int(sel["iteration"])
         for j in range(self.pool_through + 1, i):
-            missed = pool.read_selected(self.paths, j)
+            missed = deposits.read_selected(self.paths, j)
             if missed is not None:
                 self._pool_one(missed)
         self._pool_one(sel)
@@ -299,13 +300,3 @@ class Board:
         self.close()
 
 
-def _read(paths: pool.Paths, path: str, signed: bool = False) -> dict | None:
-    """A JSON object of the pool, read as members read them (bounded, no links); with ``signed``,
-    None unless a key holder wrote it."""
-    try:
-        doc = paths.read_json(path)
-    except (OSError, ValueError):
-        return None
-    if not isinstance(doc, dict) or (signed and paths.why_unsigned(doc)):
-        return None
-    return doc

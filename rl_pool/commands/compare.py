@@ -23,7 +23,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .errors import UsageError
+from rl_pool.commands import status
+from rl_pool.errors import UsageError
 
 #: Times (minutes) at which the table reports the best return so far, unless --at says otherwise.
 DEFAULT_AT = (1.0, 2.0, 5.0, 10.0, 20.0)
@@ -108,8 +109,6 @@ def load_csv(path: str) -> Run:
 
 
 def load_pool(path: str) -> Run:
-    from . import status
-
     st = status.status(path)  # UsageError for a missing or foreign directory
     cfg = {k: v for k, v in st["config"].items() if k != "seed"}
     first = st["history"][0]["members"] if st["history"] else []
@@ -162,7 +161,7 @@ def _spread(values: list[float | None]) -> tuple[float, float, float, int] | Non
 
 
 def _fmt(x: float | None, nd: int = 1, scale: float = 1.0) -> str:
-    return "-" if x is None else f"{x / scale:.{nd}f}"
+    return status.fixed(None if x is None else x / scale, nd)
 
 
 def _fmt_spread(s, nd: int = 1, scale: float = 1.0, of: int = 0) -> str:

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import os
 
-from .status import status
+from rl_pool.commands.status import status
 
 
 def plot_pool(pool_dir: str, out: str | None = None) -> str:

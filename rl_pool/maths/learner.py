@@ -27,7 +27,7 @@ import jax.numpy as jnp
 import numpy as np
 from jax.scipy.special import gammaln
 
-from . import policy
+from rl_pool.maths import policy
 
 jax.config.update("jax_enable_x64", True)
 

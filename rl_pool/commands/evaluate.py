@@ -15,7 +15,7 @@ import multiprocessing as mp
 import os
 import time
 
-from .threads import VARIABLES, cap_threads
+from rl_pool.threads import VARIABLES, cap_threads
 
 
 class EvalWorker:
@@ -43,7 +43,7 @@ class EvalWorker:
     # ----- hooks for subclasses -------------------------------------------
     def make_env(self, agent):
         """The environment episodes run in (default: the agent's own, unwrapped)."""
-        from . import envs
+        from rl_pool.learning import envs
 
         kwargs = dict(agent.meta.env_kwargs, max_episode_steps=agent.meta.max_episode_steps)
         return envs.make(agent.meta.env, kwargs)[0]
@@ -79,7 +79,7 @@ class EvalWorker:
 
     def setup(self) -> None:
         cap_threads()
-        from .agent import Agent
+        from rl_pool.maths.agent import Agent
 
         self._agent = Agent.from_bytes(self.agent_bytes)
         self._env = self.make_env(self._agent)
@@ -123,7 +123,7 @@ def _run(seed: int) -> float:
 def load_worker_class(spec: str | None):
     if not spec:
         return EvalWorker
-    from .errors import UsageError
+    from rl_pool.errors import UsageError
 
     module, _, name = spec.partition(":")
     if not module or not name:
@@ -133,7 +133,7 @@ def load_worker_class(spec: str | None):
     except (ImportError, AttributeError) as exc:
         raise UsageError(f"cannot import worker {spec!r}: {exc}") from None
     if not (isinstance(cls, type) and issubclass(cls, EvalWorker)):
-        raise UsageError(f"worker {spec!r} is not a subclass of rl_pool.evaluate.EvalWorker")
+        raise UsageError(f"worker {spec!r} is not a subclass of rl_pool.commands.evaluate.EvalWorker")
     return cls
 
 
@@ -163,13 +163,14 @@ def resolve_agent(target: str) -> tuple[str, bytes]:
     is never read through a symbolic link; an agent file the user names may be one,
     but must lead to a regular file. Reads only: works on a read-only pool.
     """
-    from . import fsutil, pool
-    from .agent import Agent
-    from .errors import AgentFileError, UsageError
+    from rl_pool import fsutil
+    from rl_pool.errors import AgentFileError, UsageError
+    from rl_pool.maths.agent import Agent
+    from rl_pool.protocol import layout, pool
 
     path, root, follow = target, None, True
     if os.path.isdir(target):
-        pool.read_config(pool.Paths(target), readonly=True)  # a foreign directory is refused here
+        pool.read_config(layout.Paths(target), readonly=True)  # a foreign directory is refused here
         path, root, follow = os.path.join(target, "best.npz"), target, False
         if not os.path.lexists(path):
             raise UsageError(f"pool {target} has no best agent yet (no iteration completed)")
@@ -190,7 +191,7 @@ MAX_EPISODES = 1_000_000
 
 def evaluate_path(target: str, episodes: int = 10, workers: int = 1, seed: int = 1_000_000,
                   worker: str | None = None, mode: str = "mean") -> dict:
-    from .errors import UsageError
+    from rl_pool.errors import UsageError
 
     if episodes < 1 or workers < 1:
         raise UsageError("--episodes and --workers must be positive")

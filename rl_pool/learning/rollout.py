@@ -13,7 +13,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-from . import normalizer, policy
+from rl_pool.maths import normalizer, policy
 
 
 class Batch(NamedTuple):

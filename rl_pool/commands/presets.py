@@ -8,7 +8,7 @@ one rate per member (``launch``; ``train --member I`` takes the I-th) and
 
 from __future__ import annotations
 
-from .errors import UsageError
+from rl_pool.errors import UsageError
 
 #: Each preset was chosen by measured runs; why each value is there, with the runs that decided
 #: it, is in docs/results.md (one section per task) and the dated notebook, docs/notebook.md.

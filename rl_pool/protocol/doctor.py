@@ -5,7 +5,7 @@ A pool needs three things from its filesystem (docs/cluster.md):
 1. atomic replace: ``rename(2)`` of a complete temp file over a name;
 2. an exclusive create-once that holds across clients: rl-pool decides with a
    rename of a complete directory onto a name that may already hold one
-   (:mod:`rl_pool.claim`);
+   (:mod:`rl_pool.protocol.claim`);
 3. visibility after close: a file written and closed on one host is read
    whole by another that opens it afterwards, and shows in listings.
 
@@ -27,12 +27,11 @@ import json
 import math
 import os
 import shutil
-import socket
 import sys
 import time
-import uuid
 
-from . import claim, fsutil
+from rl_pool import fsutil
+from rl_pool.protocol import claim
 
 #: FUSE filesystems over object stores: a directory rename is a copy then a delete, not one step.
 OBJECT_STORE_FUSE = ("s3fs", "gcsfuse", "goofys", "rclone", "mountpoint-s3", "s3backer", "blobfuse",
@@ -205,7 +204,7 @@ def local_checks(d: str, required_only: bool = False) -> list[dict]:
         first = claim.create_once(p, b"first")
         second = claim.create_once(p, b"second")
         ok = first == (b"first", True) and second == (b"first", False) and claim.read_once(p) == b"first"
-        return ok, "rl_pool.claim.create_once: the second proposal reads the first's bytes" \
+        return ok, "rl_pool.protocol.claim.create_once: the second proposal reads the first's bytes" \
             if ok else f"got {first} then {second}"
 
     def fsync_dir():
@@ -258,7 +257,7 @@ class _Session:
 
     def __init__(self, d: str, session: str, timeout: float):
         self.root = os.path.join(d, ".rl-pool-doctor", session)
-        self.me = f"{socket.gethostname().split('.')[0]}-{os.getpid()}-{uuid.uuid4().hex[:6]}"
+        self.me = fsutil.writer_token(6)
         self.timeout = timeout
         self.peer: str | None = None
         os.makedirs(self.root, exist_ok=True)
@@ -486,7 +485,7 @@ def format_report(r: dict) -> str:
 
 
 def add_parser(subparsers) -> argparse.ArgumentParser:
-    """``rl-pool doctor``: ``doctor.add_parser(sub)`` in :func:`rl_pool.cli.build_parser`."""
+    """``rl-pool doctor``: ``doctor.add_parser(sub)`` in :func:`rl_pool.commands.cli.build_parser`."""
     p = subparsers.add_parser(
         "doctor", help="check that a directory's filesystem can hold a pool",
         description="Check the filesystem holding DIR for what a pool needs (atomic replace, "
@@ -526,7 +525,7 @@ def run(args) -> int:
 
 
 def main(argv=None) -> int:
-    p = argparse.ArgumentParser(prog="python -m rl_pool.doctor")
+    p = argparse.ArgumentParser(prog="python -m rl_pool.protocol.doctor")
     sub = p.add_subparsers(dest="command", required=True)
     add_parser(sub)
     args = p.parse_args(["doctor", *(sys.argv[1:] if argv is None else argv)])

@@ -29,22 +29,23 @@ import multiprocessing as mp
 import os
 import time
 
-from . import fsutil, pool
-from .errors import AgentFileError, UsageError
-from .evaluate import MAX_EPISODES, EvalWorker, capped_children
+from rl_pool import fsutil
+from rl_pool.commands.evaluate import MAX_EPISODES, EvalWorker, capped_children
+from rl_pool.errors import AgentFileError, UsageError
+from rl_pool.protocol import deposits, layout, pool
 
 DEFAULT_SEED = 2_000_000
 
 
-def candidates(paths: pool.Paths, top: int) -> tuple[list[dict], int]:
+def candidates(paths: layout.Paths, top: int) -> tuple[list[dict], int]:
     """``(candidates, distinct agents selected)``: the ``top`` distinct selected agents by the best
     evaluation return each reached (0: all; ties: the earlier iteration), then the last selected
     agent if it is not among them. Each: ``agent`` (path in the pool), ``agent_sha256``,
     ``iteration`` (where it reached that return), ``eval_return``, ``last`` (the last selected)."""
     seen: dict[str, dict] = {}
     last = None
-    for i in pool.iterations_on_disk(paths):
-        sel = pool.read_selected(paths, i)
+    for i in deposits.iterations_on_disk(paths):
+        sel = deposits.read_selected(paths, i)
         if sel is None or not isinstance(sel.get("agent"), str) or not isinstance(sel.get("agent_sha256"), str):
             continue
         ret = sel.get("eval_return")
@@ -99,10 +100,10 @@ def _run_all(agents: list[bytes], seeds: list[int], mode: str, workers: int) -> 
 def _why_not_playable(data: bytes, digest: str, source: str, cfg, like=None) -> str | None:
     """None if ``data`` is an agent for the pool's task, else why not (checked here, so a bad
     candidate is skipped rather than failing a worker process). ``like``: the initial agent's
-    description, which every agent of the pool shares (as :func:`rl_pool.pool.read_agent` checks);
+    description, which every agent of the pool shares (as :func:`rl_pool.protocol.deposits.read_agent` checks);
     without it, the pool's env."""
     try:
-        meta = pool.parse_agent(data, digest, source).meta
+        meta = deposits.parse_agent(data, digest, source).meta
     except (AgentFileError, ValueError) as exc:
         return str(exc).removeprefix(f"{source}: ")
     if meta != like if like is not None else (meta.env, meta.env_kwargs) != (cfg.env, cfg.env_kwargs):
@@ -117,12 +118,12 @@ def pick(pool_dir: str, top: int = 20, episodes: int = 20, seed: int = DEFAULT_S
         raise UsageError("--top must be >= 0, --episodes and --workers positive")
     if episodes > MAX_EPISODES:
         raise UsageError(f"--episodes must be at most {MAX_EPISODES}")
-    paths = pool.Paths(pool_dir)
+    paths = layout.Paths(pool_dir)
     cfg = pool.read_config(paths, readonly=True)  # a foreign directory is refused here
     verified = pool.attach_key(paths, required=False)
     found, distinct = candidates(paths, top)
     try:  # the pool's own agent description (the initial agent, a decided file)
-        like = pool.load_selected_agent(paths, 0).meta
+        like = deposits.load_selected_agent(paths, 0).meta
     except (OSError, ValueError, AgentFileError):
         like = None
     t0 = time.perf_counter()
@@ -133,7 +134,7 @@ def pick(pool_dir: str, top: int = 20, episodes: int = 20, seed: int = DEFAULT_S
         except (OSError, ValueError) as exc:
             skipped.append(c | {"reason": str(getattr(exc, "strerror", None) or exc)})
             continue
-        if pool.sha256(data) != c["agent_sha256"]:
+        if layout.sha256(data) != c["agent_sha256"]:
             skipped.append(c | {"reason": "does not match the hash its selection recorded"})
             continue
         why = _why_not_playable(data, c["agent_sha256"], c["agent"], cfg, like)

@@ -2,7 +2,7 @@
 
 Every branch of an iteration starts from the same parent ``P`` and returns an agent
 ``B_m`` after its own training episodes. With the branches the selection rule chose
-(:func:`rl_pool.selection.decide`), rank weights ``w_m`` (summing to 1) and a scale
+(:func:`rl_pool.protocol.selection.decide`), rank weights ``w_m`` (summing to 1) and a scale
 ``c``, the merged agent is
 
 * parameters ``P + c * sum_m w_m (B_m - P)``: the weighted mean update times ``c``
@@ -24,8 +24,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from .agent import Agent
-from .normalizer import NormState
+from rl_pool.maths.agent import Agent
+from rl_pool.maths.normalizer import NormState
 
 
 def weighted_update(parent: dict, branches: list[dict], weights: list[float], scale: float) -> dict:

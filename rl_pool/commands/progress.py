@@ -19,8 +19,9 @@ import sys
 import time
 from dataclasses import dataclass, field
 
-from . import pool, status
-from .errors import SignalLatch, UsageError, drop_output
+from rl_pool.commands import status
+from rl_pool.errors import SignalLatch, UsageError, drop_output
+from rl_pool.protocol import deposits, layout, pool
 
 #: Heartbeat states of a member that is running.
 ACTIVE = ("starting", "training", "evaluating", "waiting")
@@ -64,7 +65,7 @@ class Tracker:
 
     def __init__(self, pool_dir: str, since: float | None = None, target: int | None = None,
                  recent: int = 5):
-        self.paths = pool.Paths(pool_dir)
+        self.paths = layout.Paths(pool_dir)
         self.since = time.time() if since is None else since
         self.target = target
         self.keep = max(recent, 0)
@@ -83,30 +84,30 @@ class Tracker:
         self.cfg = pool.read_config(self.paths, readonly=True)
         # with the pool's key (if this host has it) forged or unsigned files are left out, as in status
         pool.attach_key(self.paths, required=False)
-        doc = status._read(self.paths.pool_json) or {}
+        doc = self.paths.read_object(self.paths.pool_json) or {}
         self.created = status._num(doc.get("created"))
         return True
 
     def _read_new(self) -> None:
         if self.seen == 0:
-            last = pool.last_selected(self.paths)  # one listing on the first look
+            last = deposits.last_selected(self.paths)  # one listing on the first look
         else:
             # selections come in order, so probing the next ones is enough (no listing of a long pool)
             last = self.seen
-            while pool.read_selected(self.paths, last + 1) is not None:
+            while deposits.read_selected(self.paths, last + 1) is not None:
                 last += 1
         if last <= self.seen:
             return
         start = max(self.seen + 1, last - WINDOW - self.keep, 1)
         if start > self.seen + 1 and self.seen == 0:
             # first look at a long-running pool: the best so far is in best.json
-            b = status._read(self.paths.best_json)
+            b = self.paths.read_object(self.paths.best_json)
             if b and status._num(b.get("eval_return")) is not None:
                 self.best = {"iteration": b.get("iteration"), "member": b.get("member"),
                              "eval_return": float(b["eval_return"]),
                              "winner": "branch" if isinstance(b.get("member"), int) else "parent"}
         for i in range(start, last + 1):
-            sel = pool.read_selected(self.paths, i)
+            sel = deposits.read_selected(self.paths, i)
             if sel is None:
                 continue
             row = status.history_row(self.paths, sel, self.cfg.pool_size)
@@ -173,10 +174,6 @@ def clock(seconds: float | None) -> str:
     return f"{s // 3600}:{s % 3600 // 60:02d}:{s % 60:02d}"
 
 
-def _f(x, nd: int = 2) -> str:
-    return "-" if not isinstance(x, (int, float)) or isinstance(x, bool) else f"{x:.{nd}f}"
-
-
 def _headline(label: str, rec: dict | None, style: str, why):
     """A rich ``Text``: ``label``, then a return in ``style`` and ``(why(rec))``, or ``-``."""
     from rich.text import Text
@@ -185,7 +182,7 @@ def _headline(label: str, rec: dict | None, style: str, why):
     if rec is None:
         out.append("-")
     else:
-        out.append(_f(rec["eval_return"]), style=style)
+        out.append(status.fixed(rec["eval_return"]), style=style)
         out.append(f" ({why(rec)})")
     return out
 
@@ -200,7 +197,7 @@ def _member_states(snap: Snapshot, limit: int = 8) -> str:
         for m in snap.members:
             counts[m["state"] or "-"] = counts.get(m["state"] or "-", 0) + 1
         return ", ".join(f"{n} {s}" for s, n in sorted(counts.items()))
-    return ", ".join(f"m{m['member']} {m['state'] or '-'} {_f(m.get('last_return'))}" for m in snap.members)
+    return ", ".join(f"m{m['member']} {m['state'] or '-'} {status.fixed(m.get('last_return'))}" for m in snap.members)
 
 
 def line(snap: Snapshot) -> str:
@@ -211,9 +208,9 @@ def line(snap: Snapshot) -> str:
     target = f"/{snap.target}" if snap.target is not None else ""
     parts = [f"{stamp} iteration {snap.iteration}{target}"]
     if snap.last is not None:
-        parts.append(f"selected {_f(snap.last['eval_return'])} ({status.describe(snap.last, origin=False)})")
+        parts.append(f"selected {status.fixed(snap.last['eval_return'])} ({status.describe(snap.last, origin=False)})")
     if snap.best is not None:
-        parts.append(f"best {_f(snap.best['eval_return'])} (iteration {snap.best['iteration']})")
+        parts.append(f"best {status.fixed(snap.best['eval_return'])} (iteration {snap.best['iteration']})")
     parts.append(_member_states(snap))
     parts.append(f"{_rate(snap.steps_per_second)} steps/s")
     parts.append(f"elapsed {clock(snap.elapsed)}, left {'~' + clock(snap.eta) if snap.eta is not None else '-'}")
@@ -256,8 +253,8 @@ def panel(snap: Snapshot):
     for m in snap.members:
         age = m.get("heartbeat_age")
         st = m["state"] or "-"
-        mt.add_row(str(m["member"]), Text(st, style=style.get(st, "")), _s(m.get("iteration")),
-                   _g(m.get("learning_rate")), _f(m.get("last_return")),
+        mt.add_row(str(m["member"]), Text(st, style=style.get(st, "")), status.cell(m.get("iteration")),
+                   status.general(m.get("learning_rate")), status.fixed(m.get("last_return")),
                    "-" if age is None else f"{age:.0f}s ago")
     parts = [head, grid, pace, sel, best, Text(""), mt]
     for m in snap.members:
@@ -274,20 +271,12 @@ def panel(snap: Snapshot):
                 ht.add_column(f"m{m}", justify="right")
         for r in snap.recent:
             by = {x["member"]: x for x in r["members"]}
-            cells = [str(r["iteration"]), status.short_winner(r), _f(r["eval_return"])]
+            cells = [str(r["iteration"]), status.short_winner(r), status.fixed(r["eval_return"])]
             if show:
-                cells += [_f(by.get(m, {}).get("eval_return")) for m in range(snap.pool_size)]
+                cells += [status.fixed(by.get(m, {}).get("eval_return")) for m in range(snap.pool_size)]
             ht.add_row(*cells)
         parts += [Text(""), ht]
     return Group(*parts)
-
-
-def _s(x) -> str:
-    return "-" if x is None else str(x)
-
-
-def _g(x) -> str:
-    return "-" if not isinstance(x, (int, float)) else f"{x:.3g}"
 
 
 # ---------------------------------------------------------------- display
@@ -391,13 +380,13 @@ def _is_terminal(stream) -> bool:
 # ---------------------------------------------------------------- status --watch
 def check_watchable(pool_dir: str) -> None:
     """Refuse what will never become a pool: no such directory, or one holding foreign files."""
-    paths = pool.Paths(pool_dir)
+    paths = layout.Paths(pool_dir)
     if not os.path.isdir(paths.root):
         raise UsageError(f"no pool directory at {paths.root}")
     if os.path.exists(paths.pool_json):
         pool.read_config(paths, readonly=True)
         return
-    from . import fsutil
+    from rl_pool import fsutil
 
     foreign = [n for n in fsutil.listdir(paths.root)
                if n not in ("iterations", "members", "logs", "tb", ".init.lock") and not fsutil.is_tmp(n)]

@@ -8,7 +8,7 @@ import os
 import sys
 from dataclasses import MISSING, fields
 
-from .threads import cap_threads
+from rl_pool.threads import cap_threads
 
 # Pool-wide and per-member options are generated from the config dataclasses,
 # so their help text and defaults live in one place (rl_pool/config.py).
@@ -53,7 +53,7 @@ def _apply_preset(args) -> dict:
     """Fill options left unset from ``--preset``; returns the preset (empty without one)."""
     if not getattr(args, "preset", None):
         return {}
-    from . import presets
+    from rl_pool.commands import presets
 
     chosen = presets.get(args.preset)
     # A preset's gradient step size belongs to its episode count: with another --train-episodes
@@ -73,19 +73,19 @@ def _apply_preset(args) -> dict:
 
 
 def _member_config(args, **override):
-    from .config import MemberConfig
+    from rl_pool.config import MemberConfig
 
     return MemberConfig(**(_explicit(args, MemberConfig) | override))
 
 
 # ----------------------------------------------------------------- commands
 def cmd_train(args) -> int:
-    from . import member
-    from .config import PoolConfig
+    from rl_pool.commands import member
+    from rl_pool.config import PoolConfig
 
     preset = _apply_preset(args)
     if args.learning_rate is None and preset:
-        from .presets import member_learning_rate
+        from rl_pool.commands.presets import member_learning_rate
 
         args.learning_rate = member_learning_rate(preset, args.member or 0, args.pool_size)
     requested = _explicit(args, PoolConfig)
@@ -93,15 +93,15 @@ def cmd_train(args) -> int:
 
 
 def cmd_launch(args) -> int:
-    from . import launch
-    from .config import MemberConfig, PoolConfig
+    from rl_pool.commands import launch
+    from rl_pool.config import MemberConfig, PoolConfig
 
     if args.learning_rates and args.pool_size is None:
         args.pool_size = len(args.learning_rates)  # one rate per member: the list says how many
     preset = _apply_preset(args)
     lrs = args.learning_rates
     if lrs is None and args.learning_rate is None and preset.get("learning_rates"):
-        from .presets import learning_rates
+        from rl_pool.commands.presets import learning_rates
 
         lrs = learning_rates(preset, args.pool_size)  # a larger pool keeps the preset's rates
     requested = _explicit(args, PoolConfig)
@@ -111,12 +111,12 @@ def cmd_launch(args) -> int:
 
 
 def cmd_status(args) -> int:
-    from . import status
+    from rl_pool.commands import status
 
     if args.watch:
         if args.json or args.csv:
             raise _usage("--watch shows a live view; it does not combine with --json or --csv")
-        from . import progress
+        from rl_pool.commands import progress
 
         return progress.watch(args.pool_dir, interval=args.interval,
                               recent=5 if args.last is None else min(args.last, 50))
@@ -131,13 +131,13 @@ def cmd_status(args) -> int:
 
 
 def _usage(message: str):
-    from .errors import UsageError
+    from rl_pool.errors import UsageError
 
     return UsageError(message)
 
 
 def cmd_compare(args) -> int:
-    from . import compare
+    from rl_pool.commands import compare
 
     text = compare.compare(args.inputs, out=args.out, threshold=args.threshold,
                            at_minutes=args.at or compare.DEFAULT_AT,
@@ -149,7 +149,7 @@ def cmd_compare(args) -> int:
 
 
 def cmd_plot(args) -> int:
-    from . import plot
+    from rl_pool.commands import plot
 
     out = plot.plot_pool(args.pool_dir, args.out)
     print(out)
@@ -157,7 +157,7 @@ def cmd_plot(args) -> int:
 
 
 def cmd_evaluate(args) -> int:
-    from . import evaluate
+    from rl_pool.commands import evaluate
 
     res = evaluate.evaluate_path(args.target, episodes=args.episodes, workers=args.workers,
                                  seed=args.seed, worker=args.worker, mode=args.mode)
@@ -171,7 +171,7 @@ def cmd_evaluate(args) -> int:
 
 
 def cmd_pick(args) -> int:
-    from . import pick
+    from rl_pool.commands import pick
 
     res = pick.pick(args.pool_dir, top=args.top, episodes=args.episodes, seed=args.seed, workers=args.workers,
                     mode=args.mode, out=args.out)
@@ -180,7 +180,7 @@ def cmd_pick(args) -> int:
 
 
 def cmd_replay(args) -> int:
-    from . import replay
+    from rl_pool.commands import replay
 
     out = replay.replay_path(args.target, args.out, steps=args.steps, seed=args.seed, fps=args.fps,
                              width=args.width, height=args.height, camera=args.camera)
@@ -189,7 +189,7 @@ def cmd_replay(args) -> int:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    from .config import MemberConfig, PoolConfig
+    from rl_pool.config import MemberConfig, PoolConfig
 
     p = _Parser(prog="rl-pool", description="Branch-and-merge REINFORCE pools for MuJoCo tasks.")
     sub = p.add_subparsers(dest="command", required=True, parser_class=_Parser)
@@ -261,7 +261,7 @@ def build_parser() -> argparse.ArgumentParser:
     ev.add_argument("--seed", type=_seed, default=1_000_000, help="first episode's reset seed; episode k uses seed+k")
     ev.add_argument("--mode", choices=("mean", "sample"), default="mean", help="actions: Beta mean or samples")
     ev.add_argument("--worker", default=None, metavar="MODULE:CLASS",
-                    help="a custom evaluation worker (subclass of rl_pool.evaluate.EvalWorker)")
+                    help="a custom evaluation worker (subclass of rl_pool.commands.evaluate.EvalWorker)")
     ev.add_argument("--json", action="store_true")
     ev.set_defaults(func=cmd_evaluate)
 
@@ -292,14 +292,14 @@ def build_parser() -> argparse.ArgumentParser:
     rp.add_argument("--camera", default=None, help="a camera of the model (default: 'track' if it has one)")
     rp.set_defaults(func=cmd_replay)
 
-    from . import doctor
+    from rl_pool.protocol import doctor
 
     doctor.add_parser(sub)
     return p
 
 
 def _preset_names() -> list[str]:
-    from .presets import PRESETS
+    from rl_pool.commands.presets import PRESETS
 
     return list(PRESETS)
 
@@ -338,7 +338,7 @@ def _float_list(text: str) -> list[float]:
 def main(argv=None) -> int:
     cap_threads()  # before numpy or jax is imported anywhere in this process
     os.environ.setdefault("MUJOCO_GL", "egl")
-    from .errors import Stopped, UsageError, drop_output
+    from rl_pool.errors import Stopped, UsageError, drop_output
 
     args = build_parser().parse_args(argv)
     try:

@@ -6,17 +6,9 @@ import os
 import re
 import time
 
-from . import fsutil, heartbeat, pool
+from rl_pool.protocol import deposits, heartbeat, layout, pool
 
 _AGENT_RE = re.compile(r"^iterations/(\d{6,})/(?:member-(\d{3,})\.npz|initial\.npz)$")
-
-
-def _read(path):
-    try:
-        doc = fsutil.read_json(path)
-    except (OSError, ValueError):
-        return None
-    return doc if isinstance(doc, dict) else None
 
 
 def _num(x):
@@ -71,27 +63,27 @@ def _int(x):
     return int(x) if isinstance(x, int) and not isinstance(x, bool) and x >= 0 else None
 
 
-def history(paths: pool.Paths, pool_size: int, first: int = 1) -> list[dict]:
+def history(paths: layout.Paths, pool_size: int, first: int = 1) -> list[dict]:
     """One row per selected iteration (``first``, ``first + 1``, ...) with each member's deposit metrics."""
     rows = []
-    for i in pool.iterations_on_disk(paths):
+    for i in deposits.iterations_on_disk(paths):
         if i < max(1, first):
             continue
-        sel = pool.read_selected(paths, i)
+        sel = deposits.read_selected(paths, i)
         if sel is not None:
             rows.append(history_row(paths, sel, pool_size))
     return rows
 
 
-def history_row(paths: pool.Paths, sel: dict, pool_size: int) -> dict:
+def history_row(paths: layout.Paths, sel: dict, pool_size: int) -> dict:
     """The history row of one selection: the winner and every member's deposit metrics."""
     i = sel["iteration"]
     members = []
     for m in range(pool_size):
-        doc = _read(paths.deposit_json(i, m))
+        doc = paths.read_object(paths.deposit_json(i, m))
         if doc is None:
             continue
-        wait = _read(paths.wait_json(i, m)) or {}
+        wait = paths.read_object(paths.wait_json(i, m)) or {}
         members.append({
             "member": m,
             "eval_return": _num(doc.get("eval_return")),
@@ -129,7 +121,7 @@ def best_of(rows: list[dict]) -> dict | None:
     return best
 
 
-def members(paths: pool.Paths, pool_size: int) -> list[dict]:
+def members(paths: layout.Paths, pool_size: int) -> list[dict]:
     """Heartbeats with their age as seen from here (file mtime on this host's clock)."""
     out = []
     for m in range(pool_size):
@@ -153,13 +145,13 @@ def members(paths: pool.Paths, pool_size: int) -> list[dict]:
 
 
 def status(pool_dir: str) -> dict:
-    paths = pool.Paths(pool_dir)
+    paths = layout.Paths(pool_dir)
     cfg = pool.read_config(paths, readonly=True)
     # With the key (the default path, --key-file's env var) only key holders' files count, as for
     # members; a reader without it sees the files unverified, and says so.
     verified = pool.attach_key(paths, required=False)
     rows = history(paths, cfg.pool_size)
-    doc = _read(paths.pool_json) or {}
+    doc = paths.read_object(paths.pool_json) or {}
     created = _num(doc.get("created"))
     for r in rows:
         r["elapsed_seconds"] = (r["time"] - created) if (r["time"] and created) else None
@@ -240,7 +232,7 @@ def format_table(st: dict, last: int = 10) -> str:
                  f"best: {b['eval_return']:.2f} (iteration {b['iteration']}, {describe(b)})")
     v = st.get("versions")
     if v:
-        from .versions import differences, format_versions
+        from rl_pool.versions import differences, format_versions
 
         lines.append(f"versions: {format_versions(v)}")
         diff = differences(v)
@@ -250,8 +242,8 @@ def format_table(st: dict, last: int = 10) -> str:
     lines.append(f"{'member':>6}  {'state':<10} {'iter':>5}  {'lr':>9}  {'last return':>11}  {'heartbeat':>9}")
     for m in st["members"]:
         age = m.get("heartbeat_age")
-        lines.append(f"{m['member']:>6}  {m['state'] or '-':<10} {_s(m.get('iteration')):>5}  "
-                     f"{_g(m.get('learning_rate')):>9}  {_f(m.get('last_return')):>11}  "
+        lines.append(f"{m['member']:>6}  {m['state'] or '-':<10} {cell(m.get('iteration')):>5}  "
+                     f"{general(m.get('learning_rate')):>9}  {fixed(m.get('last_return')):>11}  "
                      f"{('-' if age is None else f'{age:.0f}s ago'):>9}")
         if m.get("error") and m["state"] in ("failed", "stopped"):
             lines.append(f"{'':>8}error: {m['error']}")
@@ -260,20 +252,23 @@ def format_table(st: dict, last: int = 10) -> str:
         lines.append("")
         lines.append(f"{'iter':>5}  {'selected':>8}  {'return':>9}  members (return)")
         for r in rows:
-            ms = "  ".join(f"m{x['member']}:{_f(x['eval_return'])}" for x in r["members"])
-            who = _s(r["selected_member"]) if r["winner"] == "branch" else r["winner"]
-            lines.append(f"{r['iteration']:>5}  {who:>8}  {_f(r['eval_return']):>9}  {ms}")
+            ms = "  ".join(f"m{x['member']}:{fixed(x['eval_return'])}" for x in r["members"])
+            who = cell(r["selected_member"]) if r["winner"] == "branch" else r["winner"]
+            lines.append(f"{r['iteration']:>5}  {who:>8}  {fixed(r['eval_return']):>9}  {ms}")
     return "\n".join(lines)
 
 
-def _s(x):
+def cell(x) -> str:
+    """A value for a table cell: ``-`` when there is none (status, progress and compare share these)."""
     return "-" if x is None else str(x)
 
 
-def _f(x):
-    return "-" if x is None else f"{x:.2f}"
+def fixed(x, nd: int = 2) -> str:
+    """A number with ``nd`` decimals, or ``-``."""
+    return "-" if not isinstance(x, (int, float)) or isinstance(x, bool) else f"{x:.{nd}f}"
 
 
-def _g(x):
-    return "-" if x is None else f"{x:.3g}"
+def general(x) -> str:
+    """A number with 3 significant digits, or ``-``."""
+    return "-" if not isinstance(x, (int, float)) or isinstance(x, bool) else f"{x:.3g}"
 

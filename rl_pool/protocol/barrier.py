@@ -8,11 +8,13 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass
 
-from . import pool
-from .agent import Agent
-from .config import PoolConfig
-from .heartbeat import Liveness
-from .pool import Paths, present, publish_selection, read_selected
+from rl_pool.config import PoolConfig
+from rl_pool.maths.agent import Agent
+from rl_pool.protocol import pool
+from rl_pool.protocol.deposits import present, read_selected
+from rl_pool.protocol.heartbeat import Liveness
+from rl_pool.protocol.layout import Paths
+from rl_pool.protocol.pool import publish_selection
 
 log = logging.getLogger("rl_pool")
 

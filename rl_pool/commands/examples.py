@@ -1,8 +1,8 @@
-"""Example custom evaluation worker: ``rl-pool evaluate POOL --worker rl_pool.examples:XDistance``."""
+"""Example custom evaluation worker: ``rl-pool evaluate POOL --worker rl_pool.commands.examples:XDistance``."""
 
 from __future__ import annotations
 
-from .evaluate import EvalWorker
+from rl_pool.commands.evaluate import EvalWorker
 
 
 class XDistance(EvalWorker):

@@ -3,7 +3,7 @@
 A pure function of the iteration's verified deposit reports (their metrics) and
 the previous selection: :func:`decide` touches no file, so every member computes
 the same record, and the rule is tested with tables of cases. The store
-(:mod:`rl_pool.pool`) reads and verifies the files, hands the reports over, checks
+(:mod:`rl_pool.protocol.pool`) reads and verifies the files, hands the reports over, checks
 the agents the decision names, and writes the decision. How the pool works as a
 whole is described in ``docs/protocol.md``.
 
@@ -14,7 +14,7 @@ Winners:
   evaluation episodes, beat every branch (``--selection parent``);
 * ``merge``: with ``--merge mean|sum|adaptive``, two or more branches beat the parent
   (and the fallback): the next agent is the parent plus a rank-weighted
-  combination of their updates (:mod:`rl_pool.merge`); it is scored in the next
+  combination of their updates (:mod:`rl_pool.maths.merge`); it is scored in the next
   iteration, as the parent, beside the best agent this iteration evaluated
   (its ``fallback``), which takes over if the merge turns out worse;
 * ``fallback``: that fallback beat the merged parent and every branch;
@@ -26,8 +26,8 @@ from __future__ import annotations
 
 import math
 
-from .config import PoolConfig
-from .layout import deposit_rel
+from rl_pool.config import PoolConfig
+from rl_pool.protocol.layout import deposit_rel
 
 #: Members that re-score the parent in an iteration, in turn: enough that a selection lacks the
 #: parent's score only if all of them are missing or invalid, few enough that a large pool does not

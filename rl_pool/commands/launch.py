@@ -4,7 +4,7 @@ Each member is a fresh interpreter (``python -m rl_pool train``), never a fork
 of the launcher: JAX and the BLAS libraries start threads that a fork would
 copy in a locked state. Children get the one-thread caps in their environment
 and their own session, so the launcher alone decides when they get a signal.
-Progress (:mod:`rl_pool.progress`) is a live panel on a terminal and plain
+Progress (:mod:`rl_pool.commands.progress`) is a live panel on a terminal and plain
 lines in a log.
 """
 
@@ -18,10 +18,12 @@ import subprocess
 import sys
 import time
 
-from . import fsutil, heartbeat, pool, progress, status
-from .config import MemberConfig
-from .errors import SignalLatch, UsageError, drop_output
-from .threads import capped_environ
+from rl_pool import fsutil
+from rl_pool.commands import progress, status
+from rl_pool.config import MemberConfig
+from rl_pool.errors import SignalLatch, UsageError, drop_output
+from rl_pool.protocol import heartbeat, layout, pool
+from rl_pool.threads import capped_environ
 
 DEFAULT_RATIO = 0.1  # the first member's learning rate relative to the others'
 
@@ -50,9 +52,9 @@ def launch(pool_dir: str, requested: dict, member_opts: dict, learning_rates: li
 
     ``interval``: seconds between plain progress lines when stdout is not a terminal.
     """
-    from .member import check_arguments, make_initial
+    from rl_pool.commands.member import check_arguments, make_initial
 
-    paths = pool.Paths(pool_dir)
+    paths = layout.Paths(pool_dir)
     n = check_arguments(paths, requested, []).pool_size
     base = base_lr if base_lr is not None else MemberConfig.learning_rate
     lrs = learning_rates if learning_rates is not None else default_learning_rates(n, base)
@@ -75,7 +77,7 @@ def launch(pool_dir: str, requested: dict, member_opts: dict, learning_rates: li
             cmd = [sys.executable, "-m", "rl_pool", "train", "--pool-dir", paths.root, "--member", str(m),
                    "--learning-rate", repr(lr), "--quiet", *_args(requested | {"pool_size": n}),
                    *_args(member_opts)]
-            with fsutil.open_append(os.path.join(paths.logs, pool.member_name(m) + ".out"), root=paths.root) as out:
+            with fsutil.open_append(os.path.join(paths.logs, layout.member_name(m) + ".out"), root=paths.root) as out:
                 procs.append(subprocess.Popen(cmd, stdout=out, stderr=subprocess.STDOUT,
                                               stdin=subprocess.DEVNULL, env=env, start_new_session=True))
         _say(f"launched {n} members on {cfg.env} in {paths.root}; learning rates "
@@ -168,7 +170,7 @@ def _why(paths, m) -> str:
     if hb.get("error"):
         return str(hb["error"])
     try:
-        fd, st = fsutil.open_regular(os.path.join(paths.logs, pool.member_name(m) + ".out"), root=paths.root)
+        fd, st = fsutil.open_regular(os.path.join(paths.logs, layout.member_name(m) + ".out"), root=paths.root)
     except OSError:
         return "no output"
     with os.fdopen(fd, "rb") as fh:  # a regular file, opened without blocking or following links
