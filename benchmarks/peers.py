@@ -423,7 +423,7 @@ def run_rlpool(a, workdir: str) -> dict:
         run["error"] = f"rl-pool launch exited ({proc.returncode}) before the budget: {_tail(log)}"
     # env steps by each mark: the pool's history, on this host's clock
     try:
-        from rl_pool import status
+        from rl_pool.commands import status
 
         st = status.status(pool_dir)
         rows, hist = status.curve(st), st["history"]

@@ -7,7 +7,7 @@ import sys
 
 import pytest
 
-from rl_pool.presets import PRESETS
+from rl_pool.commands.presets import PRESETS
 
 SCRIPT = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "benchmarks", "peers.py")
 
