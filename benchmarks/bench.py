@@ -429,14 +429,14 @@ def _protocol_pool(n: int, dirs: list[str], iterations: int, warmup: int, extra:
 def _plain_pool(n: int, dirs: list[str], iterations: int, warmup: int, extra: list[str]) -> float:
     """ms per iteration of the same pool with nothing counted: members run as ``rl-pool train``;
     the mean gap between the decisions of iterations ``warmup`` and ``iterations``."""
-    from rl_pool.protocol import pool as pool_mod
+    from rl_pool.protocol import deposits, layout
 
     name = f"bench-plain-{n}-{os.getpid()}-{time.time_ns() % 10**6}"
     roots = [os.path.join(d, name) for d in dirs]
     try:
         _run_members(n, roots, iterations, extra, lambda m: [sys.executable, "-m", "rl_pool"])
-        paths = pool_mod.Paths(roots[0])
-        t0, t1 = (pool_mod.read_selected(paths, i)["time"] for i in (warmup, iterations))
+        paths = layout.Paths(roots[0])
+        t0, t1 = (deposits.read_selected(paths, i)["time"] for i in (warmup, iterations))
         return 1000 * (t1 - t0) / (iterations - warmup)
     finally:
         shutil.rmtree(roots[0], ignore_errors=True)
@@ -456,20 +456,22 @@ def protocol(args) -> None:
     print(f"env {args.env}, 10-step episodes, 1 training + 1 evaluation episode{parent} per member and iteration, "
           f"{args.iterations} iterations (first {args.warmup} not counted); pool on {', '.join(dirs)}")
     print("per member and iteration (mean over members and iterations; ms/iter and cpu ms: median; plain: mean):")
-    print(f"{'N':>4} {'ms/iter':>8} {'plain':>6} {'cpu ms':>6} {'floor':>6} {'reads':>6} {'writes':>6} {'missing':>7} "
-          f"{'dir opens':>9} {'listings':>8} {'stats':>6} {'renames':>7} {'fsyncs':>6} {'reads <= N+3':>12}")
+    print(f"{'N':>4} {'merge':>8} {'ms/iter':>8} {'plain':>6} {'cpu ms':>6} {'floor':>6} {'reads':>6} {'writes':>6} "
+          f"{'missing':>7} {'dir opens':>9} {'listings':>8} {'stats':>6} {'renames':>7} {'fsyncs':>6} "
+          f"{'reads <= N+3':>12}")
     rows = []
     try:
         for n in args.members:
-            r = _protocol_pool(n, dirs, args.iterations, args.warmup, extra)
-            r["plain_ms"] = _plain_pool(n, dirs, args.iterations, args.warmup, extra)
-            rows.append({"members": n, **r})
-            floor = n * r["cpu_ms"] / min(n, os.cpu_count() or 1)
-            print(f"{n:>4} {r['ms']:>8.1f} {r['plain_ms']:>6.1f} {r['cpu_ms']:>6.1f} {floor:>6.0f} {r['open_read']:>6.1f} "
-                  f"{r['open_write']:>6.1f} "
-                  f"{r['open_missing']:>7.1f} {r['open_dir']:>9.1f} {r['listing']:>8.1f} {r['stat']:>6.1f} "
-                  f"{r['rename']:>7.1f} {r['fsync']:>6.1f} {'yes' if r['open_read'] <= n + 3 else 'no':>12}",
-                  flush=True)
+            for kind in args.merge:
+                r = _protocol_pool(n, dirs, args.iterations, args.warmup, [*extra, "--merge", kind])
+                r["plain_ms"] = _plain_pool(n, dirs, args.iterations, args.warmup, [*extra, "--merge", kind])
+                rows.append({"members": n, "merge": kind, **r})
+                floor = n * r["cpu_ms"] / min(n, os.cpu_count() or 1)
+                print(f"{n:>4} {kind:>8} {r['ms']:>8.1f} {r['plain_ms']:>6.1f} {r['cpu_ms']:>6.1f} {floor:>6.0f} "
+                      f"{r['open_read']:>6.1f} {r['open_write']:>6.1f} "
+                      f"{r['open_missing']:>7.1f} {r['open_dir']:>9.1f} {r['listing']:>8.1f} {r['stat']:>6.1f} "
+                      f"{r['rename']:>7.1f} {r['fsync']:>6.1f} {'yes' if r['open_read'] <= n + 3 else 'no':>12}",
+                      flush=True)
     finally:
         if base:
             shutil.rmtree(base, ignore_errors=True)
@@ -567,6 +569,9 @@ def main(argv=None) -> None:
     pr.add_argument("--selection", default="parent", choices=("parent", "branches"),
                     help="the pool's --selection: parent (the default) also re-scores the parent each "
                          "iteration, one more evaluation episode for three members (all in pools of up to 3)")
+    pr.add_argument("--merge", type=lambda t: t.split(","), default=["none"],
+                    help="the pools' --merge, comma-separated: each pool size runs once per rule, side by side "
+                         "(e.g. none,adaptive: a merge reads every valid branch's agent and writes one more)")
     pr.add_argument("--json", action="store_true", help="also print the rows as one JSON list")
     pr.set_defaults(func=protocol)
     sm = sub.add_parser("simd", help="member throughput with the portable SIMD level vs all of the CPU")
