@@ -216,6 +216,28 @@ def test_the_adaptive_scale(name, previous, rows, carried, scale):
     assert out["merge"]["scale"] == scale
 
 
+def test_an_adaptive_merge_needs_three_branches_at_the_bar():
+    cfg = _cfg("adaptive", n=4)
+    out, needs = selection.decide(cfg, 1, PREVIOUS, [_report(0, 5.0, 4.0), _report(1, 7.0), _report(2, 3.0)], [],
+                                  "complete")
+    assert (out["winner"], out["member"], needs) == ("branch", 1, [1])
+    # mean and sum merge two
+    out, _ = selection.decide(_cfg("mean", n=4), 1, PREVIOUS, [_report(0, 5.0, 4.0), _report(1, 7.0)], [],
+                              "complete")
+    assert out["winner"] == "merge"
+
+
+@pytest.mark.parametrize("rows", [
+    [(0, 5.0, 4.0), (1, 7.0, None)], [(0, 3.0, 4.0), (1, 2.0, None)], [(0, 4.0, 4.0), (1, 4.0, None)],
+    [(0, 5.0, None), (1, 7.0, None)], [(0, 9.0, 4.0)]])
+def test_two_members_with_the_adaptive_merge_decide_as_without_a_merge(rows):
+    reports = [_report(m, r, p) for m, r, p in rows]
+    plain, plain_needs = selection.decide(_cfg("none", n=2), 1, PREVIOUS, reports, [], "complete")
+    adaptive, needs = selection.decide(_cfg("adaptive", n=2), 1, PREVIOUS, reports, [], "complete")
+    assert adaptive.pop("merge_scale") == 1.0
+    assert (adaptive, needs) == (plain, plain_needs)
+
+
 def test_the_adaptive_scale_is_carried_when_nothing_is_merged():
     previous = PREVIOUS | {"merge_scale": 4.0}
     out, _ = selection.decide(_cfg("adaptive", n=4), 1, previous, [_report(0, 3.0, 4.0), _report(1, 2.0)], [],

@@ -152,6 +152,16 @@ def merge_scale(kind: str, k: int, adaptive: float = 1.0) -> float:
     return 1.0
 
 
+def min_merged(kind: str) -> int:
+    """The fewest branches a merge is made of; with fewer at the bar, the best one wins alone.
+    ``adaptive`` needs 3: the rank-weighted mean of two branches is mostly the better one shrunk
+    towards the other (in the default launch, the guard member's small steps), which loses the
+    step size and gains little averaging; a pool of 2 members then goes on exactly as ``none``
+    does (on HalfCheetah, merging pairs left 2 members at 2514 after 60 iterations, against 3000
+    by iteration 45 without: docs/scaling.md)."""
+    return 3 if kind == "adaptive" else 2
+
+
 #: The adaptive merge's scale is multiplied by this after a merge that held its ground and divided
 #: by it after one that did not: a trust region, as the 1/5 success rule of evolution strategies.
 SCALE_STEP = 2.0
@@ -262,7 +272,8 @@ def _merge_or_pick(cfg: PoolConfig, out: dict, previous: dict, considered: list[
     The bar a branch must reach is the best score of the agents that did not train this
     iteration: the parent (re-scored) and, after a merge, the fallback (the best agent the
     merge's iteration evaluated, re-scored beside it). Branches at or above the bar are merged
-    (one alone is simply the winner); with none, the better of parent and fallback stays. With
+    (fewer than :func:`min_merged`: the best of them simply wins); with none, the better of
+    parent and fallback stays. With
     ``--selection branches``, or with no report of the parent's score, there is no bar and the
     better half of the branches is merged.
     """
@@ -293,7 +304,7 @@ def _merge_or_pick(cfg: PoolConfig, out: dict, previous: dict, considered: list[
         _, _, rec = max(olds, key=lambda o: o[0])  # ties: the parent (listed first) stays
         out |= rec | {"best_branch": {k: best[k] for k in ("member", "eval_return", "score")}}
         return []
-    if len(chosen) == 1:
+    if len(chosen) < min_merged(cfg.merge):
         out |= branch(chosen[0])
         return [chosen[0]["member"]]
     weights = merge_weights(len(chosen))
