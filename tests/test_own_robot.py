@@ -96,3 +96,19 @@ def test_a_module_that_cannot_be_imported_is_refused_in_one_line(tmp_path, modul
     lines = proc.stderr.strip().splitlines()
     assert len(lines) == 1 and "Traceback" not in proc.stderr, proc.stderr
     assert lines[0].startswith("rl-pool: error:") and module in lines[0] and "No module named" in lines[0]
+
+
+@pytest.mark.parametrize("source,why", [
+    ("def broken(:\n", "SyntaxError"),
+    ("import gymnasium\ngymnasium.register(id='Robot-v0', entry_point=__name__ + ':Robot')\n"
+     "class Robot:\n    def __init__(self, **kw):\n        raise KeyError('no such joint')\n", "KeyError"),
+])
+def test_a_module_or_environment_that_raises_is_refused_in_one_line(tmp_path, source, why):
+    (tmp_path / "raising_robot.py").write_text(source)
+    proc = rl_pool("launch", "--pool-dir", tmp_path / "pool", "--env", "raising_robot:Robot-v0",
+                   "--iterations", 1, env=_environ(tmp_path))
+    assert proc.returncode == 2, proc.stderr
+    lines = proc.stderr.strip().splitlines()
+    assert len(lines) == 1 and "Traceback" not in proc.stderr, proc.stderr
+    assert lines[0].startswith("rl-pool: error:") and why in lines[0]
+    assert not (tmp_path / "pool").exists()  # nothing written for a pool that cannot start

@@ -99,6 +99,8 @@ def make(env_id: str, env_kwargs: dict | None = None, render_mode: str | None = 
         raise EnvError(f"unknown or unusable environment {env_id!r}: {exc}") from None
     except (TypeError, ValueError, ImportError, OSError) as exc:
         raise EnvError(f"cannot make environment {env_id!r} with {kwargs}: {exc}") from None
+    except Exception as exc:  # a user's own module or environment (--env mypkg:MyRobot-v0) may raise anything
+        raise EnvError(f"cannot make environment {env_id!r} with {kwargs}: {type(exc).__name__}: {exc}") from None
     info = check(env_id, wrapped)
     return wrapped.unwrapped, info
 
