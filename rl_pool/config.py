@@ -66,12 +66,12 @@ class PoolConfig:
                                    "later re-score of it as the parent (a lucky first score wears off; with "
                                    "--selection branches a best is re-scored in the iteration after it became "
                                    "the best or was reverted to)", ("first", "mean"), added=True)
-    merge: str = opt("none", "how the next agent is made from the branches: the best one alone (none), or "
-                            "the parent plus the rank-weighted mean of the updates of every branch that "
-                            "beat it (mean), or that mean times the number of such branches (sum), or "
-                            "times a scale that doubles after a merge that beat the best branch of its "
-                            "iteration and halves after one that did not, between 1 and that number "
-                            "(adaptive)",
+    merge: str = opt("adaptive", "how the next agent is made from the branches that beat the parent: the best "
+                                 "one alone (none); the parent plus the rank-weighted mean of their updates "
+                                 "(mean), or that mean times their number (sum); or, from 3 such branches, "
+                                 "times a scale that doubles after a merge that beat the best branch of its "
+                                 "iteration and halves after one that did not (adaptive: 2 members go on as "
+                                 "with none)",
                      ("none", "mean", "sum", "adaptive"), added=True, before="none")
     seed: int = opt(0, "root seed; every random draw derives from (seed, member, iteration)")
 

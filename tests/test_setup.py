@@ -163,7 +163,7 @@ def test_setup_from_the_lock_installs_exactly_the_locked_versions(tmp_path):
 def test_making_envs_is_quiet_and_leaves_no_mujoco_log(tmp_path):
     """MuJoCo warns on every load of HalfCheetah's XML (a deprecated compiler attribute) and writes
     MUJOCO_LOG.TXT into the working directory; rl-pool routes that to its log at debug level."""
-    code = ("from rl_pool import envs\n"
+    code = ("from rl_pool.learning import envs\n"
             "for e in ('HalfCheetah-v5', 'HalfCheetah-v5'): envs.make(e)[0].close()\n")
     p = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=tmp_path, timeout=300,
                        env=dict(os.environ, PYTHONPATH=ROOT))
@@ -171,7 +171,7 @@ def test_making_envs_is_quiet_and_leaves_no_mujoco_log(tmp_path):
     assert p.stdout == "" and p.stderr == ""
     assert os.listdir(tmp_path) == []
     # a warning that matters (an unstable simulation) is still said, once per kind
-    code = ("import math, mujoco\nfrom rl_pool import envs\nenvs.quiet_mujoco_warnings()\n"
+    code = ("import math, mujoco\nfrom rl_pool.learning import envs\nenvs.quiet_mujoco_warnings()\n"
             "m = mujoco.MjModel.from_xml_string('<mujoco><worldbody><body><freejoint/><geom size=\".1\"/>"
             "</body></worldbody></mujoco>')\nd = mujoco.MjData(m)\n"
             "for _ in range(3):\n    mujoco.mj_resetData(m, d); d.qpos[0] = math.nan; mujoco.mj_step(m, d)\n")
