@@ -184,6 +184,34 @@ def test_in_a_larger_pool_three_members_in_turn_re_score_the_parent(tmp_path):
         assert sel["winner"] != "merge" or sel["merge"]["members"] == above
 
 
+def test_an_adaptive_pool_merges_with_the_scale_its_selections_carry(tmp_path):
+    """N = 4 with the default merge: each selection's merge scale follows from its parent's and the
+    verdict on the parent (a merge) against its fallback, and three or more branches at the bar are
+    merged with that scale capped at their number."""
+    d = tmp_path / "adaptive"
+    n, iters = 4, 6
+    procs = [spawn("train", "--pool-dir", d, "--pool-size", n, "--member", m, "--learning-rate", 0.3,
+                   "--iterations", iters, *SHORT, "--quiet") for m in range(n)]
+    for p in procs:
+        _, err = p.communicate(timeout=240)
+        assert p.returncode == 0, err
+    winners = []
+    for i in range(1, iters + 1):
+        prev = json.loads((d / f"iterations/{i - 1:06d}/selected.json").read_text())
+        sel = json.loads((d / f"iterations/{i:06d}/selected.json").read_text())
+        verdict = sel.get("fallback", {}).get("score")
+        if prev.get("winner") == "merge" and verdict is not None:
+            want = selection.next_scale(prev, sel["parent"]["score"], verdict, n)
+        else:
+            want = selection.carried_scale(prev, n)
+        assert sel["merge_scale"] == want
+        if sel["winner"] == "merge":
+            assert sel["merge"]["kind"] == "adaptive" and len(sel["merge"]["members"]) >= 3
+            assert sel["merge"]["scale"] == min(sel["merge_scale"], len(sel["merge"]["members"]))
+        winners.append(sel["winner"])
+    assert "merge" in winners, winners
+
+
 def test_best_score_mean_with_branches_re_scores_each_new_best_and_revert(tmp_path):
     """Real members, branches only, ``--best-score mean``: they re-score the parent exactly in the
     iterations after it became the best or was reverted to, and the best's mean is its first score

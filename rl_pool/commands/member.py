@@ -258,7 +258,7 @@ def _loop(paths: layout.Paths, cfg: PoolConfig, mc: MemberConfig, hb: heartbeat.
             hb.set_soon(state="waiting", iteration=i)  # a short wait is not worth a write
             res = barrier.barrier(paths, i, cfg, me, like, quorum, mc.barrier_timeout, liveness,
                                poll_max=mc.poll_max_for(cfg.pool_size), previous=prev, check=_stop.check)
-            pool.fsutil.write_json(paths.wait_json(i, me),
+            fsutil.write_json(paths.wait_json(i, me),
                                    {"iteration": i, "member": me, "wait_seconds": res.waited,
                                     "resumed_at": time.time()}, durable=False)
             sel = res.selection
