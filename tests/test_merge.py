@@ -238,6 +238,17 @@ def test_two_members_with_the_adaptive_merge_decide_as_without_a_merge(rows):
     assert (adaptive, needs) == (plain, plain_needs)
 
 
+@pytest.mark.parametrize("sel,parent", [("branches", 4.0), ("parent", None)])
+def test_an_adaptive_pool_without_a_bar_takes_the_best_branch(sel, parent):
+    """With --selection branches, or with no report of the parent's score (its scorers missing),
+    nothing could judge a merge in the next iteration: the best branch wins, at any carried scale."""
+    rows = [(0, 5.0, parent, None), (1, 7.0, None, None), (2, 6.0, None, None), (3, 1.0, None, None)]
+    out, needs = selection.decide(_cfg("adaptive", n=4, selection=sel), 1, PREVIOUS | {"merge_scale": 4.0},
+                                  [_report(*r) for r in rows], [], "complete")
+    assert (out["winner"], out["member"], needs) == ("branch", 1, [1])
+    assert out["merge_scale"] == 4.0 and "next_fallback" not in out
+
+
 def test_the_adaptive_scale_is_carried_when_nothing_is_merged():
     previous = PREVIOUS | {"merge_scale": 4.0}
     out, _ = selection.decide(_cfg("adaptive", n=4), 1, previous, [_report(0, 3.0, 4.0), _report(1, 2.0)], [],

@@ -273,9 +273,9 @@ def _merge_or_pick(cfg: PoolConfig, out: dict, previous: dict, considered: list[
     iteration: the parent (re-scored) and, after a merge, the fallback (the best agent the
     merge's iteration evaluated, re-scored beside it). Branches at or above the bar are merged
     (fewer than :func:`min_merged`: the best of them simply wins); with none, the better of
-    parent and fallback stays. With
-    ``--selection branches``, or with no report of the parent's score, there is no bar and the
-    better half of the branches is merged.
+    parent and fallback stays. With ``--selection branches``, or with no report of the parent's
+    score, there is no bar: ``mean`` and ``sum`` merge the better half of the branches, and
+    ``adaptive``, which merges only what the next iteration can judge, takes the best branch.
     """
     shifted = bool(cfg.reward_shift)
     ranked = sorted(considered, key=lambda c: (-c["score"], c["member"]))
@@ -297,6 +297,9 @@ def _merge_or_pick(cfg: PoolConfig, out: dict, previous: dict, considered: list[
     if olds:
         bar = max(s for s, _, _ in olds)
         chosen = [c for c in ranked if c["score"] >= bar]
+    elif cfg.merge == "adaptive":
+        # nothing to merge against: no verdict could ever judge the merge, so the best branch wins
+        chosen = ranked[:1]
     else:
         chosen = ranked[:(len(ranked) + 1) // 2]
     best = ranked[0]
