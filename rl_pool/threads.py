@@ -6,14 +6,11 @@ one member alone (the lesson of parallel robot evaluation).
 
 numpy picks its SIMD kernels (exp, log, tanh, ...) and OpenBLAS its matrix
 kernels by the CPU they run on, and kernels for other instruction sets round
-differently: the same pool, seed and versions gave another history on an
-AVX-512 CPU than on an AVX2 one (HalfCheetah: the first iteration's return
-differs in the 11th digit, the histories part within five iterations). Capping
-numpy's dispatch and XLA's code generation at x86-64-v3 (AVX2 and FMA, which
-x86 machines of the last decade have) and pinning OpenBLAS to its AVX2
-("Haswell") kernels makes every such CPU compute the same bits (measured: 40
-of 40 HalfCheetah iterations made on an AVX2 machine replayed exactly on an
-AVX-512 one; docs/reproducibility.md). ``RL_POOL_NATIVE_SIMD=1``
+differently: the same pool, seed and versions gives another history on an
+AVX-512 CPU than on an AVX2 one. Capping numpy's dispatch and XLA's code
+generation at x86-64-v3 (AVX2 and FMA, which x86 machines of the last decade
+have) and pinning OpenBLAS to its AVX2 ("Haswell") kernels makes every such CPU
+compute the same bits (measured in docs/reproducibility.md). ``RL_POOL_NATIVE_SIMD=1``
 lets them use all of the CPU; a value of your own for any of these variables is
 kept; a CPU without AVX2 runs natively.
 

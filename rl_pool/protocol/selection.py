@@ -157,8 +157,7 @@ def min_merged(kind: str) -> int:
     ``adaptive`` needs 3: the rank-weighted mean of two branches is mostly the better one shrunk
     towards the other (in the default launch, the guard member's small steps), which loses the
     step size and gains little averaging; a pool of 2 members then goes on exactly as ``none``
-    does (on HalfCheetah, merging pairs left 2 members at 2514 after 60 iterations, against 3000
-    by iteration 45 without: docs/scaling.md)."""
+    does (measured in docs/scaling.md)."""
     return 3 if kind == "adaptive" else 2
 
 
