@@ -258,9 +258,9 @@ def test_mount_options_that_matter_are_named(fs, problem, note):
 
 
 def _doctor_peer(d: str, out) -> None:
-    from rl_pool.protocol import doctor
+    from rl_pool.protocol import peer_race
 
-    out.put(doctor.peer_race(d, rounds=10, timeout=60, settle=0.05))
+    out.put(peer_race.peer_race(d, rounds=10, timeout=60, settle=0.05))
 
 
 def test_doctor_peers_meet_race_and_agree_on_a_local_disk(tmp_path):

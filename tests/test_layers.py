@@ -83,5 +83,5 @@ def test_the_import_check_sees_imports_inside_functions():
 
 
 def test_no_module_is_over_about_500_lines():
-    long = {m: n for m, p in MODULES.items() if (n := sum(1 for _ in open(p))) > 550}
+    long = {m: n for m, p in MODULES.items() if (n := sum(1 for _ in open(p))) > 520}
     assert not long, long
