@@ -2,6 +2,8 @@
 
 import json
 import os
+import subprocess
+import sys
 
 import numpy as np
 import pytest
@@ -225,3 +227,19 @@ def test_halfcheetah_mlp_non_terminating_task_short_run(tmp_path):
         "w0": (17, 16), "b0": (16,), "w1": (16, 8), "b1": (8,), "w2": (8, 12), "b2": (12,)}
     st = json.loads(rl_pool("status", d, "--json", check=0).stdout)
     assert st["config"]["policy"] == "mlp" and st["iterations_completed"] == 2
+
+
+def test_training_picks_no_gl_backend(tmp_path):
+    """Training never renders, so the CLI leaves MUJOCO_GL alone: forcing EGL made every member
+    fail at import on a machine without libEGL. Only ``replay`` chooses a backend."""
+    code = ("import os, sys\n"
+            "from rl_pool.commands.cli import main\n"
+            "code = main(sys.argv[1:])\n"
+            "print('MUJOCO_GL', os.environ.get('MUJOCO_GL'), 'EGL' , 'OpenGL.EGL' in sys.modules)\n"
+            "sys.exit(code)\n")
+    env = {k: v for k, v in os.environ.items() if k not in ("MUJOCO_GL", "PYOPENGL_PLATFORM")}
+    proc = subprocess.run([sys.executable, "-c", code, "train", "--pool-dir", str(tmp_path / "p"),
+                           "--pool-size", "1", "--iterations", "1", *SHORT, "--quiet"],
+                          capture_output=True, text=True, timeout=180, env=env)
+    assert proc.returncode == 0, proc.stderr
+    assert "MUJOCO_GL None EGL False" in proc.stdout

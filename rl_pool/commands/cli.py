@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import sys
 from dataclasses import MISSING, fields
 
@@ -337,7 +336,6 @@ def _float_list(text: str) -> list[float]:
 
 def main(argv=None) -> int:
     cap_threads()  # before numpy or jax is imported anywhere in this process
-    os.environ.setdefault("MUJOCO_GL", "egl")
     from rl_pool.errors import Stopped, UsageError, drop_output
 
     args = build_parser().parse_args(argv)
