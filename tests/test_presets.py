@@ -61,3 +61,16 @@ def test_a_preset_grown_to_more_members_keeps_its_rates(size, want, tmp_path, mo
     cli.main(["launch", "--pool-dir", str(tmp_path / "p"), "--preset", "halfcheetah", "--pool-size", str(size)])
     assert seen["lrs"] == want
     assert [presets.member_learning_rate(presets.PRESETS["halfcheetah"], m, size) for m in range(size)] == want
+
+
+@pytest.mark.parametrize("doc", ["README.md", "docs/usage.md"])
+def test_every_preset_is_in_the_docs_tables(doc):
+    """The presets tables of the README and the usage page name every preset and its env."""
+    import os
+
+    text = open(os.path.join(os.path.dirname(__file__), "..", doc)).read()
+    rows = {line.split("|")[1].strip().strip("`"): line for line in text.splitlines()
+            if line.startswith("| `")}
+    for name, preset in presets.PRESETS.items():
+        assert name in rows, f"{doc} has no row for preset {name!r}"
+        assert preset["env"] in rows[name], f"{doc}: the row of {name!r} does not name {preset['env']}"
