@@ -10,7 +10,7 @@ import pytest
 
 from rl_pool import Agent
 
-from .conftest import SHORT, rl_pool
+from .conftest import ROOT, SHORT, rl_pool
 
 
 def _tree(root):
@@ -235,11 +235,11 @@ def test_training_picks_no_gl_backend(tmp_path):
     code = ("import os, sys\n"
             "from rl_pool.commands.cli import main\n"
             "code = main(sys.argv[1:])\n"
-            "print('MUJOCO_GL', os.environ.get('MUJOCO_GL'), 'EGL' , 'OpenGL.EGL' in sys.modules)\n"
+            "print('MUJOCO_GL', os.environ.get('MUJOCO_GL'), 'EGL', 'OpenGL.EGL' in sys.modules)\n"
             "sys.exit(code)\n")
     env = {k: v for k, v in os.environ.items() if k not in ("MUJOCO_GL", "PYOPENGL_PLATFORM")}
     proc = subprocess.run([sys.executable, "-c", code, "train", "--pool-dir", str(tmp_path / "p"),
                            "--pool-size", "1", "--iterations", "1", *SHORT, "--quiet"],
-                          capture_output=True, text=True, timeout=180, env=env)
+                          capture_output=True, text=True, timeout=180, env=env, cwd=ROOT)
     assert proc.returncode == 0, proc.stderr
     assert "MUJOCO_GL None EGL False" in proc.stdout

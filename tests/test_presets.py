@@ -1,5 +1,6 @@
 """Presets: every one names real options and makes a valid pool; explicit options win."""
 
+import os
 from dataclasses import fields
 
 import pytest
@@ -66,9 +67,8 @@ def test_a_preset_grown_to_more_members_keeps_its_rates(size, want, tmp_path, mo
 @pytest.mark.parametrize("doc", ["README.md", "docs/usage.md"])
 def test_every_preset_is_in_the_docs_tables(doc):
     """The presets tables of the README and the usage page name every preset and its env."""
-    import os
-
-    text = open(os.path.join(os.path.dirname(__file__), "..", doc)).read()
+    with open(os.path.join(os.path.dirname(__file__), "..", doc)) as fh:
+        text = fh.read()
     rows = {line.split("|")[1].strip().strip("`"): line for line in text.splitlines()
             if line.startswith("| `")}
     for name, preset in presets.PRESETS.items():

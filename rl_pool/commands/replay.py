@@ -1,7 +1,7 @@
 """``rl-pool replay``: render an agent offscreen to a GIF (Pillow) or MP4 (ffmpeg).
 
-MuJoCo renders headless through EGL (``MUJOCO_GL=egl``, set by the CLI unless
-the user chose another backend).
+MuJoCo renders headless through EGL (``MUJOCO_GL=egl``, set here before MuJoCo is
+imported unless the user chose another backend; no other command picks one).
 """
 
 from __future__ import annotations
