@@ -54,7 +54,10 @@ def _imports(path: str, module: str) -> set[str]:
             target = ".".join(parts)
             names = [f"{target}.{a.name}" if target else a.name for a in node.names]
             modules = [n for n in names if n in MODULES]
-            out.update(modules) if modules else out.add(target)
+            if modules:
+                out.update(modules)
+            else:
+                out.add(target)
         elif isinstance(node, ast.Import):
             out.update(a.name.split(".", 1)[1] for a in node.names if a.name.startswith("rl_pool."))
     return {m for m in out if m in MODULES or m in LAYERS}
