@@ -13,11 +13,13 @@ Needs the ``peers`` extra (sb3-contrib, which brings torch) in its own venv, nev
 The peer is sb3-contrib's ARS (Mania et al. 2018, augmented random search) with a linear policy
 and the settings rl-baselines3-zoo keeps "closest to the original paper" for the MuJoCo tasks:
 ``hyperparams/ars.yml`` of github.com/DLR-RM/rl-baselines3-zoo (commit 22e3ff2, 2026-04-23), its
-``Swimmer-v4``, ``Hopper-v4``, ``HalfCheetah-v4``, ``Walker2d-v4`` and ``Ant-v4`` entries (``-v3``
-in older versions of the file; there are no v5 entries, so the v5 task takes its v4 entry).
-Those entries set n_delta, n_top, learning_rate, delta_std, alive_bonus_offset and
-``normalize: "dict(norm_obs=True, norm_reward=False)"`` (all but Swimmer), and leave
-``zero_policy`` at its default (True). Candidates are evaluated by sb3-contrib's ``AsyncEval``
+``Swimmer-v4``, ``Hopper-v4``, ``HalfCheetah-v4``, ``Walker2d-v4``, ``Ant-v4`` and ``Humanoid-v4``
+entries (``-v3`` in older versions of the file; there are no v5 entries, so the v5 task takes
+its v4 entry). Those entries set n_delta, n_top, learning_rate, delta_std, alive_bonus_offset
+and ``normalize: "dict(norm_obs=True, norm_reward=False)"`` (all but Swimmer), and leave
+``zero_policy`` at its default (True). Neither the zoo nor the paper has settings for
+HumanoidStandup, InvertedPendulum, InvertedDoublePendulum, Reacher and Pusher: there ARS runs
+with sb3-contrib's defaults and observation normalisation (:data:`ARS_DEFAULTS`). Candidates are evaluated by sb3-contrib's ``AsyncEval``
 in ``--cores`` processes, one torch thread each, one episode per candidate. The observation
 filter is a ``VecNormalize`` wrapper whose statistics AsyncEval merges from its workers; a
 checkpoint saves them beside the model (``model.save`` and ``VecNormalize.save``).
@@ -65,7 +67,16 @@ ZOO_ARS: dict[str, dict] = {
                  "alive_bonus_offset": -1.0, "normalize": True},
     "Ant": {"n_delta": 60, "n_top": 20, "learning_rate": 0.015, "delta_std": 0.025,
             "alive_bonus_offset": -1.0, "normalize": True},
+    "Humanoid": {"n_delta": 256, "n_top": 256, "learning_rate": 0.02, "delta_std": 0.0075,
+                 "alive_bonus_offset": -5.0, "normalize": True},
 }
+
+#: For the tasks the zoo (and the ARS paper) has no settings for: sb3-contrib's own ARS defaults
+#: (n_delta 8, every direction kept, step 0.02, noise 0.05, no survival offset), which is what a
+#: user gets from ``ARS("LinearPolicy", env)``, with the observation normalisation every zoo
+#: MuJoCo entry but Swimmer's turns on.
+ARS_DEFAULTS: dict = {"n_delta": 8, "n_top": None, "learning_rate": 0.02, "delta_std": 0.05,
+                      "alive_bonus_offset": 0.0, "normalize": True}
 
 #: The tasks both sides have settings for: rl-pool preset -> (env id, ARS settings).
 TASKS: dict[str, tuple[str, dict]] = {
@@ -74,6 +85,12 @@ TASKS: dict[str, tuple[str, dict]] = {
     "halfcheetah": ("HalfCheetah-v5", ZOO_ARS["HalfCheetah"]),
     "walker2d": ("Walker2d-v5", ZOO_ARS["Walker2d"]),
     "ant": ("Ant-v5", ZOO_ARS["Ant"]),
+    "humanoid": ("Humanoid-v5", ZOO_ARS["Humanoid"]),
+    "humanoid-standup": ("HumanoidStandup-v5", ARS_DEFAULTS),
+    "inverted-pendulum": ("InvertedPendulum-v5", ARS_DEFAULTS),
+    "inverted-double-pendulum": ("InvertedDoublePendulum-v5", ARS_DEFAULTS),
+    "reacher": ("Reacher-v5", ARS_DEFAULTS),
+    "pusher": ("Pusher-v5", ARS_DEFAULTS),
 }
 
 FRACTIONS = (0.25, 0.5, 1.0)
@@ -98,7 +115,7 @@ def find_task(name: str) -> str:
         if name.lower() in (preset, env_id.lower()):
             return preset
     have = ", ".join(f"{p} ({e})" for p, (e, _) in TASKS.items())
-    raise Refused(f"unknown task {name!r} (have {have}; rl-baselines3-zoo has no ARS settings for the other presets)")
+    raise Refused(f"unknown task {name!r} (have {have})")
 
 
 def have_sb3_contrib() -> bool:
@@ -520,7 +537,8 @@ def main(argv=None) -> int:
     argv = sys.argv[1:] if argv is None else list(argv)
     if argv[:1] == ["_ars-train"]:
         env_id, d, seconds, cores, seed, t0 = argv[1:7]
-        run = ars_train(env_id, ZOO_ARS[env_id.split("-")[0]], d, float(seconds), int(cores), int(seed), float(t0))
+        hp = next(h for e, h in TASKS.values() if e == env_id)
+        run = ars_train(env_id, hp, d, float(seconds), int(cores), int(seed), float(t0))
         with open(os.path.join(d, "run.json"), "w") as fh:
             json.dump(run, fh, indent=1)
         return 0

@@ -20,11 +20,13 @@ def peers():
     return mod
 
 
-def test_every_task_is_a_preset_on_the_same_env(peers):
-    assert set(peers.TASKS) == {"swimmer", "hopper", "halfcheetah", "walker2d", "ant"}
+def test_every_preset_is_a_task_on_the_same_env(peers):
+    assert set(peers.TASKS) == set(PRESETS)
     for preset, (env_id, hp) in peers.TASKS.items():
         assert PRESETS[preset]["env"] == env_id
-        assert hp is peers.ZOO_ARS[env_id.split("-")[0]]
+        assert hp is peers.ZOO_ARS.get(env_id.split("-")[0], peers.ARS_DEFAULTS)
+    # the paper's six tasks have the zoo's settings, the rest sb3-contrib's defaults
+    assert sum(hp is peers.ARS_DEFAULTS for _, hp in peers.TASKS.values()) == 5
 
 
 def test_the_zoo_settings(peers):
@@ -33,6 +35,11 @@ def test_the_zoo_settings(peers):
                                             "alive_bonus_offset": 0.0, "normalize": True}
     assert peers.ZOO_ARS["Hopper"]["alive_bonus_offset"] == -1.0
     assert peers.ZOO_ARS["Swimmer"]["normalize"] is False
+    assert peers.ZOO_ARS["Humanoid"] == {"n_delta": 256, "n_top": 256, "learning_rate": 0.02, "delta_std": 0.0075,
+                                         "alive_bonus_offset": -5.0, "normalize": True}
+    # sb3-contrib 2.9.2's ARS.__init__ defaults
+    assert peers.ARS_DEFAULTS == {"n_delta": 8, "n_top": None, "learning_rate": 0.02, "delta_std": 0.05,
+                                  "alive_bonus_offset": 0.0, "normalize": True}
 
 
 def test_task_by_preset_or_env_id(peers, monkeypatch):
@@ -44,7 +51,7 @@ def test_task_by_preset_or_env_id(peers, monkeypatch):
 
 
 @pytest.mark.parametrize("argv, line", [
-    (["--task", "reacher"], "peers: unknown task 'reacher' (have swimmer (Swimmer-v5), "),
+    (["--task", "reachers"], "peers: unknown task 'reachers' (have swimmer (Swimmer-v5), "),
     (["--minutes", "0"], "peers: --minutes must be > 0, got 0.0"),
     (["--cores", "0"], "peers: --cores must be >= 1, got 0"),
     (["--episodes", "-1"], "peers: --episodes must be >= 1, got -1"),
@@ -72,6 +79,6 @@ def test_the_script_loads_neither_torch_nor_sb3_and_refuses_in_one_line():
              "print(sorted(k for k in ('torch', 'sb3_contrib', 'stable_baselines3', 'jax') if k in sys.modules))")
     res = subprocess.run([sys.executable, "-c", probe, SCRIPT], capture_output=True, text=True, check=True)
     assert res.stdout.strip() == "[]"
-    res = subprocess.run([sys.executable, SCRIPT, "--task", "Humanoid-v5"], capture_output=True, text=True)
+    res = subprocess.run([sys.executable, SCRIPT, "--task", "Humanoid-v4"], capture_output=True, text=True)
     assert res.returncode == 2 and res.stdout == ""
-    assert res.stderr.startswith("peers: unknown task 'Humanoid-v5'") and res.stderr.count("\n") == 1
+    assert res.stderr.startswith("peers: unknown task 'Humanoid-v4'") and res.stderr.count("\n") == 1
