@@ -6,7 +6,7 @@ from dataclasses import fields
 import pytest
 
 from rl_pool.commands import cli, presets
-from rl_pool.config import MemberConfig, PoolConfig
+from rl_pool.config import MemberConfig, PoolConfig, default_batch
 
 POOL_FIELDS = {f.name for f in fields(PoolConfig)}
 KNOWN = POOL_FIELDS | {f.name for f in fields(MemberConfig)} | {"learning_rates"}
@@ -74,3 +74,20 @@ def test_every_preset_is_in_the_docs_tables(doc):
     for name, preset in presets.PRESETS.items():
         assert name in rows, f"{doc} has no row for preset {name!r}"
         assert preset["env"] in rows[name], f"{doc}: the row of {name!r} does not name {preset['env']}"
+
+
+@pytest.mark.parametrize("size, merge, train, batch", [
+    (1, "adaptive", 20, 10), (2, "adaptive", 20, 10),  # no merges: min(10, E)
+    (3, "adaptive", 20, 5), (8, "adaptive", 20, 5), (16, "adaptive", 40, 5),
+    (8, "none", 20, 10), (8, "mean", 20, 10), (8, "sum", 20, 10),  # only the adaptive merge halves it
+    (8, "adaptive", 4, 2), (8, "adaptive", 6, 3), (8, "adaptive", 3, 3),  # odd: no half-episode batches
+    (8, "adaptive", 30, 5), (8, "adaptive", 15, 5),
+    (8, "adaptive", 1, 1),
+])
+def test_the_default_batch_halves_in_pools_that_merge(size, merge, train, batch):
+    cfg = PoolConfig(pool_size=size, merge=merge, train_episodes=train)
+    assert default_batch(cfg) == batch
+    resolved = cfg.validate()
+    assert resolved.batch_episodes == batch and train % batch == 0
+    # an explicit batch is never changed
+    assert PoolConfig(pool_size=size, merge=merge, train_episodes=train, batch_episodes=1).validate().batch_episodes == 1

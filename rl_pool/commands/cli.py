@@ -56,8 +56,8 @@ def _apply_preset(args) -> dict:
 
     chosen = presets.get(args.preset)
     # A preset's gradient step size belongs to its episode count: with another --train-episodes
-    # given and --batch-episodes not, the batch is the default min(10, E), not a size that may
-    # not divide E.
+    # given and --batch-episodes not, the batch is the default (config.default_batch), not a
+    # size that may not divide E.
     own_batch = getattr(args, "train_episodes", None) in (None, chosen.get("train_episodes"))
     for key, value in chosen.items():
         if key == "learning_rates":
