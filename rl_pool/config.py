@@ -36,8 +36,7 @@ class PoolConfig:
     max_episode_steps: int = opt(0, "episode length (0: the environment's own limit)")
     pool_size: int = opt(1, "number of members N")
     train_episodes: int = opt(20, "training episodes per member per iteration")
-    batch_episodes: int = opt(0, "episodes per gradient step, stepped in lockstep (0: min(10, --train-episodes), "
-                                 "halved in a pool of 3 or more members that merges adaptively)")
+    batch_episodes: int = opt(0, "episodes per gradient step, stepped in lockstep (0: min(10, --train-episodes))")
     eval_episodes: int = opt(3, "evaluation episodes per member per iteration (no updates)")
     eval_mode: str = opt("mean", "evaluation actions: Beta mean or samples", ("mean", "sample"))
     gamma: float = opt(1.0, "discount factor (Swimmer needs ~1: 0.99 traps it near 40)")
@@ -100,7 +99,7 @@ class PoolConfig:
     def validate(self) -> PoolConfig:
         """Check every field; returns the config with derived defaults resolved (``batch_episodes`` 0)."""
         if self.batch_episodes == 0 and self.train_episodes >= 1:
-            return dataclasses.replace(self, batch_episodes=default_batch(self)).validate()
+            return dataclasses.replace(self, batch_episodes=min(10, self.train_episodes)).validate()
         for name in ("pool_size", "train_episodes", "batch_episodes", "eval_episodes"):
             if getattr(self, name) < 1:
                 raise UsageError(f"--{name.replace('_', '-')} must be a positive integer, got {getattr(self, name)}")
@@ -182,20 +181,6 @@ class PoolConfig:
                     f"{where} was made with {flag} {_show(have)}, this run asks for {_show(value)} "
                     "(drop the option to use the pool's, or use another --pool-dir)")
         return saved
-
-
-def default_batch(cfg: PoolConfig) -> int:
-    """The batch ``--batch-episodes 0`` stands for: ``min(10, E)`` episodes per gradient step, and
-    half of that (when it divides E) in a pool of 3 or more members with ``--merge adaptive``.
-
-    There each member takes twice as many, noisier steps per iteration, and the merge of the
-    branches (or the pick of the best of many) averages the noise away; a pool of 2 members,
-    which does not merge, learns worse with the smaller batch (measured in docs/scaling.md).
-    """
-    batch = min(10, cfg.train_episodes)
-    if cfg.pool_size >= 3 and cfg.merge == "adaptive" and batch % 2 == 0 and cfg.train_episodes % (batch // 2) == 0:
-        batch //= 2
-    return batch
 
 
 class OldProtocol(ValueError):

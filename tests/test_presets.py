@@ -6,10 +6,10 @@ from dataclasses import fields
 import pytest
 
 from rl_pool.commands import cli, presets
-from rl_pool.config import MemberConfig, PoolConfig, default_batch
+from rl_pool.config import MemberConfig, PoolConfig
 
 POOL_FIELDS = {f.name for f in fields(PoolConfig)}
-KNOWN = POOL_FIELDS | {f.name for f in fields(MemberConfig)} | {"learning_rates"}
+KNOWN = POOL_FIELDS | {f.name for f in fields(MemberConfig)} | {"learning_rates", "merged_batch_episodes"}
 
 
 def _launch_config(name, tmp_path, *extra):
@@ -76,18 +76,21 @@ def test_every_preset_is_in_the_docs_tables(doc):
         assert preset["env"] in rows[name], f"{doc}: the row of {name!r} does not name {preset['env']}"
 
 
-@pytest.mark.parametrize("size, merge, train, batch", [
-    (1, "adaptive", 20, 10), (2, "adaptive", 20, 10),  # no merges: min(10, E)
-    (3, "adaptive", 20, 5), (8, "adaptive", 20, 5), (16, "adaptive", 40, 5),
-    (8, "none", 20, 10), (8, "mean", 20, 10), (8, "sum", 20, 10),  # only the adaptive merge halves it
-    (8, "adaptive", 4, 2), (8, "adaptive", 6, 3), (8, "adaptive", 3, 3),  # odd: no half-episode batches
-    (8, "adaptive", 30, 5), (8, "adaptive", 15, 5),
-    (8, "adaptive", 1, 1),
+@pytest.mark.parametrize("extra, batch", [
+    ((), 10),  # the preset's 2 members: min(10, E)
+    (("--pool-size", "2"), 10),
+    (("--pool-size", "3"), 5), (("--pool-size", "8"), 5), (("--pool-size", "16"), 5),  # merged pools
+    (("--pool-size", "8", "--merge", "none"), 10), (("--pool-size", "8", "--merge", "mean"), 10),
+    (("--pool-size", "8", "--batch-episodes", "10"), 10),  # an explicit batch wins
+    (("--pool-size", "8", "--train-episodes", "30"), 10),  # another E: the default min(10, E)
 ])
-def test_the_default_batch_halves_in_pools_that_merge(size, merge, train, batch):
-    cfg = PoolConfig(pool_size=size, merge=merge, train_episodes=train)
-    assert default_batch(cfg) == batch
-    resolved = cfg.validate()
-    assert resolved.batch_episodes == batch and train % batch == 0
-    # an explicit batch is never changed
-    assert PoolConfig(pool_size=size, merge=merge, train_episodes=train, batch_episodes=1).validate().batch_episodes == 1
+def test_halfcheetah_batch_halves_in_pools_that_merge(extra, batch, tmp_path):
+    _, cfg = _launch_config("halfcheetah", tmp_path, *extra)
+    assert cfg.batch_episodes == batch
+
+
+def test_merged_batch_only_where_a_preset_has_one():
+    for name, preset in presets.PRESETS.items():
+        assert presets.batch_episodes(preset, 2, "adaptive") == preset.get("batch_episodes")
+        assert presets.batch_episodes(preset, 8, "adaptive") == preset.get(
+            "merged_batch_episodes", preset.get("batch_episodes")), name

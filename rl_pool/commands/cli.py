@@ -56,18 +56,21 @@ def _apply_preset(args) -> dict:
 
     chosen = presets.get(args.preset)
     # A preset's gradient step size belongs to its episode count: with another --train-episodes
-    # given and --batch-episodes not, the batch is the default (config.default_batch), not a
-    # size that may not divide E.
+    # given and --batch-episodes not, the batch is the default min(10, E), not a size that may
+    # not divide E.
     own_batch = getattr(args, "train_episodes", None) in (None, chosen.get("train_episodes"))
     for key, value in chosen.items():
         if key == "learning_rates":
             if getattr(args, "pool_size", None) is None:
                 args.pool_size = len(value)
             continue
-        if key == "batch_episodes" and not own_batch:
+        if key in ("batch_episodes", "merged_batch_episodes"):
             continue
         if getattr(args, key, None) is None:
             setattr(args, key, value)
+    if own_batch and getattr(args, "batch_episodes", None) is None:
+        args.batch_episodes = presets.batch_episodes(chosen, getattr(args, "pool_size", None) or 1,
+                                                     getattr(args, "merge", None) or "adaptive")
     return chosen
 
 

@@ -3,7 +3,8 @@
 A preset fills in options the command line leaves out: explicit options win.
 Pool-wide values go to ``pool.json`` like any option; ``learning_rates`` gives
 one rate per member (``launch``; ``train --member I`` takes the I-th) and
-``pool_size`` its length.
+``pool_size`` its length; ``merged_batch_episodes`` replaces ``batch_episodes``
+in pools of 3 or more members that merge adaptively (:func:`batch_episodes`).
 """
 
 from __future__ import annotations
@@ -15,7 +16,7 @@ from rl_pool.errors import UsageError
 PRESETS: dict[str, dict] = {
     "swimmer": {"env": "Swimmer-v5", "learning_rates": [0.01, 0.1]},
     "halfcheetah": {"env": "HalfCheetah-v5", "policy": "mlp", "hidden": "64,64", "init_shape": 20.0,
-                    "learning_rates": [0.001, 0.003]},
+                    "learning_rates": [0.001, 0.003], "merged_batch_episodes": 5},
     "hopper": {"env": "Hopper-v5", "reward_shift": 1.0, "selection": "branches", "revert_after": 20,
                "eval_episodes": 10, "train_episodes": 40, "batch_episodes": 20, "learning_rates": [0.01, 0.03]},
     "walker2d": {"env": "Walker2d-v5", "reward_shift": 1.0, "selection": "branches", "revert_after": 20,
@@ -56,6 +57,16 @@ def learning_rates(preset: dict, pool_size: int) -> list[float] | None:
     if pool_size == 1:
         return [float(lrs[-1])]
     return [float(lrs[0])] + [float(lrs[-1])] * (pool_size - 1)
+
+
+def batch_episodes(preset: dict, pool_size: int, merge: str) -> int | None:
+    """The preset's episodes per gradient step for a pool of ``pool_size``: its
+    ``merged_batch_episodes`` in a pool of 3 or more members that merges adaptively (each member
+    takes more, noisier steps per iteration and the merge averages the noise; docs/scaling.md,
+    HalfCheetah), else its ``batch_episodes`` (None: the default, min(10, E))."""
+    if pool_size >= 3 and merge == "adaptive" and "merged_batch_episodes" in preset:
+        return preset["merged_batch_episodes"]
+    return preset.get("batch_episodes")
 
 
 def member_learning_rate(preset: dict, member: int, pool_size: int) -> float | None:
