@@ -81,7 +81,7 @@ def test_every_preset_is_in_the_docs_tables(doc):
     (("--pool-size", "2"), 10),
     (("--pool-size", "3"), 5), (("--pool-size", "8"), 5), (("--pool-size", "16"), 5),  # merged pools
     (("--pool-size", "8", "--merge", "none"), 10), (("--pool-size", "8", "--merge", "mean"), 10),
-    (("--pool-size", "8", "--batch-episodes", "10"), 10),  # an explicit batch wins
+    (("--pool-size", "8", "--batch-episodes", "4"), 4), (("--pool-size", "2", "--batch-episodes", "4"), 4),
     (("--pool-size", "8", "--train-episodes", "30"), 10),  # another E: the default min(10, E)
 ])
 def test_halfcheetah_batch_halves_in_pools_that_merge(extra, batch, tmp_path):
