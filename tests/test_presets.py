@@ -83,6 +83,7 @@ def test_every_preset_is_in_the_docs_tables(doc):
     (("--pool-size", "8", "--merge", "none"), 10), (("--pool-size", "8", "--merge", "mean"), 10),
     (("--pool-size", "8", "--batch-episodes", "4"), 4), (("--pool-size", "2", "--batch-episodes", "4"), 4),
     (("--pool-size", "8", "--train-episodes", "30"), 10),  # another E: the default min(10, E)
+    (("--pool-size", "8", "--train-episodes", "20"), 5),  # the preset's own E (the default), given
 ])
 def test_halfcheetah_batch_halves_in_pools_that_merge(extra, batch, tmp_path):
     _, cfg = _launch_config("halfcheetah", tmp_path, *extra)

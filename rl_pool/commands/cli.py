@@ -58,7 +58,9 @@ def _apply_preset(args) -> dict:
     # A preset's gradient step size belongs to its episode count: with another --train-episodes
     # given and --batch-episodes not, the batch is the default min(10, E), not a size that may
     # not divide E.
-    own_batch = getattr(args, "train_episodes", None) in (None, chosen.get("train_episodes"))
+    from rl_pool.config import PoolConfig
+
+    own_batch = getattr(args, "train_episodes", None) in (None, chosen.get("train_episodes", PoolConfig.train_episodes))
     for key, value in chosen.items():
         if key == "learning_rates":
             if getattr(args, "pool_size", None) is None:
@@ -70,7 +72,7 @@ def _apply_preset(args) -> dict:
             setattr(args, key, value)
     if own_batch and getattr(args, "batch_episodes", None) is None:
         args.batch_episodes = presets.batch_episodes(chosen, getattr(args, "pool_size", None) or 1,
-                                                     getattr(args, "merge", None) or "adaptive")
+                                                     getattr(args, "merge", None) or PoolConfig.merge)
     return chosen
 
 
