@@ -70,9 +70,13 @@ class PoolConfig:
                                  "one alone (none); the parent plus the rank-weighted mean of their updates "
                                  "(mean), or that mean times their number (sum); or, from 3 such branches, "
                                  "times a scale that doubles after a merge that beat the best branch of its "
-                                 "iteration and halves after one that did not (adaptive: 2 members go on as "
-                                 "with none)",
-                     ("none", "mean", "sum", "adaptive"), added=True, before="none")
+                                 "iteration and halves after one that did not (adaptive), or plus "
+                                 "--merge-momentum times the previous merge's step (momentum); with adaptive "
+                                 "and momentum 2 members go on as with none",
+                     ("none", "mean", "sum", "adaptive", "momentum"), added=True, before="none")
+    merge_momentum: float = opt(0.5, "with --merge momentum: the fraction of the previous merge's step that a "
+                                     "merge made right after it takes again (heavy-ball momentum across "
+                                     "iterations)", added=True)
     seed: int = opt(0, "root seed; every random draw derives from (seed, member, iteration)")
 
     @property
@@ -131,6 +135,8 @@ class PoolConfig:
             raise UsageError(f"--selection-margin must be a finite number >= 0, got {self.selection_margin}")
         if self.selection_margin and self.selection != "parent":
             raise UsageError("--selection-margin needs --selection parent (it is a margin over the parent)")
+        if not (math.isfinite(self.merge_momentum) and 0.0 <= self.merge_momentum < 1.0):
+            raise UsageError(f"--merge-momentum must be in [0, 1), got {self.merge_momentum}")
         if self.revert_after < 0:
             raise UsageError(f"--revert-after must be >= 0, got {self.revert_after}")
         try:
@@ -170,7 +176,10 @@ class PoolConfig:
             base = {f.name: (f.default if f.default is not MISSING else f.default_factory())
                     for f in fields(cls)}
             base.update(requested)
-            return cls(**base).validate()
+            cfg = cls(**base).validate()
+            if "merge_momentum" in requested and cfg.merge != "momentum":
+                raise UsageError("--merge-momentum needs --merge momentum")
+            return cfg
         for name, value in requested.items():
             have = getattr(saved, name)
             if name == "max_episode_steps" and value == 0:

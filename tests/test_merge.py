@@ -12,6 +12,7 @@ import pytest
 
 from rl_pool import fsutil
 from rl_pool.config import PoolConfig
+from rl_pool.errors import UsageError
 from rl_pool.maths import merge, normalizer
 from rl_pool.maths.normalizer import NormState
 from rl_pool.protocol import deposits, layout, pool, selection
@@ -81,6 +82,30 @@ def test_merged_agent_moments_are_the_weighted_mean():
     np.testing.assert_allclose(m.opt_m["w"], 2.0)
     np.testing.assert_allclose(m.params["w"], parent.params["w"] + 2.0 * (
         2 / 3 * (a.params["w"] - parent.params["w"]) + 1 / 3 * (b.params["w"] - parent.params["w"])))
+
+
+def test_momentum_matches_a_plain_loop():
+    rng = np.random.default_rng(3)
+    before = {"w": rng.normal(size=(2, 3)), "b": rng.normal(size=4)}
+    parent = {k: v + rng.normal(size=v.shape) for k, v in before.items()}
+    merged = {k: v + rng.normal(size=v.shape) for k, v in parent.items()}
+    got = merge.with_momentum(merged, parent, before, 0.5)
+    for name in parent:
+        want = [float(m) + 0.5 * (float(p) - float(b)) for m, p, b in
+                zip(merged[name].ravel(), parent[name].ravel(), before[name].ravel())]
+        np.testing.assert_allclose(got[name].ravel(), want, rtol=1e-12, atol=1e-12)
+
+
+def test_a_merge_with_momentum_adds_beta_times_the_pools_last_step():
+    before, parent, a, b = agent(0), agent(1), agent(2), agent(3)
+    plain = merge.merge_agents(parent, [a, b], [2 / 3, 1 / 3], 1.0, [a, b])
+    moved = merge.merge_agents(parent, [a, b], [2 / 3, 1 / 3], 1.0, [a, b], momentum=(0.25, before))
+    for name in parent.params:
+        np.testing.assert_allclose(moved.params[name], plain.params[name] + 0.25 * (
+            parent.params[name] - before.params[name]), rtol=1e-12, atol=1e-12)
+    # only the parameters: statistics and Adam moments are the merge's own
+    np.testing.assert_array_equal(moved.norm.mean, plain.norm.mean)
+    np.testing.assert_array_equal(moved.opt_m["w"], plain.opt_m["w"])
 
 
 @pytest.mark.parametrize("k", [1, 2, 3, 7, 16])
@@ -259,6 +284,60 @@ def test_the_adaptive_scale_is_carried_when_nothing_is_merged():
     assert out["winner"] == "carried" and out["merge_scale"] == 4.0
 
 
+# ---------------------------------------------------------------- momentum, as a table
+GRAND = {"iteration": 0, "member": None, "agent": "iterations/000000/initial.npz", "agent_sha256": "g" * 64}
+MERGED_BEFORE = AFTER_MERGE | {"iteration": 1, "agent": "iterations/000001/merged-0123.npz", "parent": GRAND}
+MOMENTUM_CASES = [
+    # (name, --merge-momentum, previous, expected momentum record or None)
+    ("a merge after a merge: beta times the step from the previous merge's parent", 0.5, MERGED_BEFORE,
+     {"beta": 0.5, "from": {"iteration": 0, "agent": GRAND["agent"], "agent_sha256": "g" * 64}}),
+    ("beta 0: none", 0.0, MERGED_BEFORE, None),
+    ("after a branch won: none (the pool's step was a pick)", 0.5, MERGED_BEFORE | {"winner": "branch"}, None),
+    ("after the parent stayed: none", 0.5, MERGED_BEFORE | {"winner": "parent"}, None),
+    ("a previous selection that does not name its parent's file: none", 0.5,
+     MERGED_BEFORE | {"parent": {k: v for k, v in GRAND.items() if k != "agent"}}, None),
+    ("a garbled parent record: none", 0.5, MERGED_BEFORE | {"parent": "x"}, None),
+]
+
+
+@pytest.mark.parametrize("name,beta,previous,want", MOMENTUM_CASES, ids=[c[0] for c in MOMENTUM_CASES])
+def test_the_momentum_term(name, beta, previous, want):
+    rows = [(0, 5.0, 4.0, None), (1, 7.0, None, None), (2, 6.0, None, None)]
+    prev = previous | {"next_fallback": AFTER_MERGE["next_fallback"]} if previous["winner"] == "merge" else previous
+    out, _ = selection.decide(_cfg("momentum", n=4, merge_momentum=beta), 2, prev, [_report(*r) for r in rows],
+                              [], "complete")
+    assert out["winner"] == "merge" and out["merge"]["scale"] == 1.0
+    assert out["merge"].get("momentum") == want
+    # the other rules take no momentum, whatever the setting
+    other, _ = selection.decide(_cfg("adaptive", n=4, merge_momentum=0.5), 2, prev, [_report(*r) for r in rows],
+                                [], "complete")
+    assert "momentum" not in other["merge"]
+    # every selection names the file of the agent it started from: the next merge's momentum needs it
+    assert out["parent"]["agent"] == previous["agent"]
+
+
+def test_momentum_is_a_pool_setting_in_zero_to_one():
+    for bad in (-0.1, 1.0, float("nan")):
+        with pytest.raises(UsageError, match="--merge-momentum"):
+            _cfg("momentum", merge_momentum=bad)
+    with pytest.raises(UsageError, match="--merge-momentum needs --merge momentum"):
+        PoolConfig.merged({"merge": "adaptive", "merge_momentum": 0.5}, None)
+    assert PoolConfig.merged({"merge": "momentum", "merge_momentum": 0.7}, None).merge_momentum == 0.7
+    # pools made before the setting existed read as they were made: they cannot merge with momentum
+    d = _cfg("adaptive").to_json()
+    d.pop("merge_momentum")
+    assert PoolConfig.from_json(d).merge == "adaptive"
+
+
+@pytest.mark.parametrize("rows", [
+    [(0, 5.0, 4.0), (1, 7.0, None)], [(0, 3.0, 4.0), (1, 2.0, None)], [(0, 5.0, None), (1, 7.0, None)]])
+def test_two_members_with_the_momentum_merge_decide_as_without_a_merge(rows):
+    reports = [_report(m, r, p) for m, r, p in rows]
+    for previous in (PREVIOUS, MERGED_BEFORE):
+        plain = selection.decide(_cfg("none", n=2), 1, previous, reports, [], "complete")
+        assert selection.decide(_cfg("momentum", n=2), 1, previous, reports, [], "complete") == plain
+
+
 # ---------------------------------------------------------------- the store
 def _deposits(paths, n, returns, parent_return, seed0=10):
     prev = deposits.read_selected(paths, 0)
@@ -341,3 +420,41 @@ def test_gc_keeps_the_merged_agent_and_its_fallback(tmp_path):
     assert left == sorted([os.path.basename(sel["agent"]), "member-001.npz"])
     assert pool.update_best(paths, deposits.read_selected(paths, 1))
     assert json.loads(open(paths.best_json).read())["agent"] == "iterations/000001/member-001.npz"
+
+
+def _deposit_iteration(paths, i, n, returns, parent_return, seed0):
+    """Deposits of iteration ``i`` whose member 0 re-scores the parent (the selection of ``i - 1``)."""
+    prev = deposits.read_selected(paths, i - 1)
+    for m in range(n):
+        extra = {"parent_eval_return": parent_return, "parent_sha256": prev["agent_sha256"]} if m == 0 else {}
+        deposits.deposit(paths, i, m, agent(seed0 + m), {"iteration": i, "eval_return": returns[m], **extra})
+
+
+@pytest.mark.parametrize("grandparent", ["intact", "replaced by another agent"])
+def test_a_second_merge_in_a_row_takes_momentum_from_the_files(tmp_path, grandparent):
+    paths, cfg = make_pool(tmp_path / "p", pool_size=3, merge="momentum", merge_momentum=0.5)
+    _deposit_iteration(paths, 1, 3, [5.0, 7.0, 6.0], 4.0, seed0=10)
+    first = pool.select(paths, 1, cfg, deposits.load_selected_agent(paths, 0), {0, 1, 2}, "complete",
+                        deposits.read_selected(paths, 0))
+    assert first["winner"] == "merge" and "momentum" not in first["merge"]
+    pool.publish_selection(paths, first, by=0)
+    first = deposits.read_selected(paths, 1)
+    _deposit_iteration(paths, 2, 3, [9.0, 8.0, 8.5], 7.5, seed0=20)
+    g = deposits.load_selected_agent(paths, 0)
+    if grandparent != "intact":
+        deposits._parsed.clear()  # as in a member that never parsed it
+        fsutil.atomic_write(paths.initial(), agent(99).to_bytes())
+    parent = deposits.load_selected_agent(paths, 1, first)
+    second = pool.select(paths, 2, cfg, parent, {0, 1, 2}, "complete", first)
+    assert second["winner"] == "merge" and second["merge"]["members"] == [0, 2, 1]
+    merged = deposits.load_selected_agent(paths, 2, second)
+    branches = [deposits.read_deposit(paths, 2, m)[1] for m in (0, 2, 1)]
+    w = selection.merge_weights(3)
+    for name in parent.params:
+        want = parent.params[name] + sum(wk * (b.params[name] - parent.params[name]) for wk, b in zip(w, branches))
+        if grandparent == "intact":
+            assert second["merge"]["momentum"]["from"]["agent_sha256"] == layout.sha256(g.to_bytes())
+            want = want + 0.5 * (parent.params[name] - g.params[name])
+        else:  # a file that fails its hash adds nothing, and the record says why
+            assert "does not match the hash" in second["merge"]["momentum"]["skipped"]
+        np.testing.assert_allclose(merged.params[name], want, rtol=1e-12, atol=1e-12)

@@ -1,5 +1,6 @@
 """Real pools: members are separate OS processes on one real directory; kills are real SIGKILLs."""
 
+import itertools
 import json
 import os
 import signal
@@ -402,3 +403,56 @@ def test_shell_pool_script_stops_on_signal_and_resumes(tmp_path):
     assert st["iterations_completed"] == done + 2
     lrs = {m["member"]: m["learning_rate"] for h in st["history"] for m in h["members"]}
     assert lrs == {0: 0.02, 1: 0.2}
+
+
+def _momentum_pool(d, kill_at=None):
+    """A 4-member pool with ``--merge momentum``; with ``kill_at``, member 2 is killed with SIGKILL
+    while it trains in an iteration >= ``kill_at`` and started again."""
+    n, iters = 4, 6
+    args = ["--pool-size", n, "--iterations", iters, *SHORT, "--quiet", "--seed", 0, "--merge", "momentum",
+            "--quorum", n]  # the others wait for a killed member: the uninterrupted history
+
+    def start(m):
+        return spawn("train", "--pool-dir", d, "--member", m, "--learning-rate", 0.03, *args)
+
+    procs = [start(m) for m in range(n)]
+    if kill_at is not None:
+        hb = d / "members/member-002.json"
+        deadline, killed = time.time() + 120, False
+        while time.time() < deadline and not killed:
+            try:
+                doc = json.loads(hb.read_text())
+            except (OSError, ValueError):
+                doc = {}
+            if doc.get("state") == "training" and (doc.get("iteration") or 0) >= kill_at:
+                procs[2].send_signal(signal.SIGKILL)
+                killed = True
+            time.sleep(0.001)
+        assert killed, "member 2 never trained in a late enough iteration"
+        procs[2].wait()
+        assert procs[2].returncode == -signal.SIGKILL
+        procs[2] = start(2)
+    for p in procs:
+        _, err = p.communicate(timeout=240)
+        assert p.returncode == 0, err
+    return [json.loads((d / f"iterations/{i:06d}/selected.json").read_text()) for i in range(1, iters + 1)]
+
+
+def test_a_momentum_pool_killed_and_restarted_replays_its_merges(tmp_path):
+    """N = 4 with --merge momentum: a merge right after a merge takes beta times the pool's last step
+    (named by its file and hash), and a member killed with SIGKILL mid-iteration and started again
+    gives the same selections, merged agents' hashes included."""
+    sels = _momentum_pool(tmp_path / "whole")
+    with_momentum = [s for s in sels if s["winner"] == "merge" and "beta" in s["merge"].get("momentum", {})]
+    assert with_momentum, [s["winner"] for s in sels]
+    for prev, sel in itertools.pairwise(sels):
+        if sel["winner"] == "merge":
+            if prev["winner"] == "merge":
+                assert sel["merge"]["momentum"] == {"beta": 0.5, "from": {
+                    "iteration": prev["parent"]["iteration"], "agent": prev["parent"]["agent"],
+                    "agent_sha256": prev["parent"]["agent_sha256"]}}
+            else:
+                assert "momentum" not in sel["merge"]
+    again = _momentum_pool(tmp_path / "killed", kill_at=3)
+    keys = ("winner", "member", "eval_return", "agent_sha256", "merge", "considered", "parent", "fallback")
+    assert [{k: s.get(k) for k in keys} for s in again] == [{k: s.get(k) for k in keys} for s in sels]

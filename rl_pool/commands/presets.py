@@ -64,7 +64,7 @@ def batch_episodes(preset: dict, pool_size: int, merge: str) -> int | None:
     ``merged_batch_episodes`` in a pool of 3 or more members that merges adaptively (each member
     takes more, noisier steps per iteration and the merge averages the noise; docs/scaling.md,
     HalfCheetah), else its ``batch_episodes`` (None: the default, min(10, E))."""
-    if pool_size >= 3 and merge == "adaptive" and "merged_batch_episodes" in preset:
+    if pool_size >= 3 and merge in ("adaptive", "momentum") and "merged_batch_episodes" in preset:
         return preset["merged_batch_episodes"]
     return preset.get("batch_episodes")
 

@@ -9,6 +9,8 @@ Every branch of an iteration starts from the same parent ``P`` and returns an ag
   (``--merge mean``: c = 1, a data-parallel batch; ``sum``: c = k, the k
   branches' progress in one step, as a batch k times larger with a rate k times
   larger would take it);
+* with ``--merge-momentum`` beta, after a merge, plus ``beta (P - P')``, ``P'`` the agent the
+  previous merge started from: heavy-ball momentum across iterations (:func:`with_momentum`);
 * Adam moments ``sum_m w_m M_m`` (the same weights: they describe the merged update);
   its step count is the branches' (they all made the same number of steps);
 * observation statistics of every valid branch, not only the merged ones: each
@@ -86,11 +88,27 @@ def pooled_statistics(parent: NormState, branches: list[NormState]) -> NormState
     return out
 
 
+def with_momentum(merged: dict, parent: dict, before: dict, beta: float) -> dict:
+    """``merged + beta * (parent - before)`` for each named array: heavy-ball momentum (Polyak
+    1964) across iterations, ``before`` being the agent the previous merge started from. Applied
+    to merges, as SlowMo (Wang et al. 2020) applies it to the averaged updates of local SGD: the
+    part of the step that persists from one iteration to the next grows up to ``1 / (1 - beta)``
+    times, the part that changes direction does not."""
+    out = {}
+    for name, m in merged.items():
+        p = np.asarray(parent[name], dtype=np.float64)
+        out[name] = m + beta * (p - np.asarray(before[name], dtype=np.float64))
+    return out
+
+
 def merge_agents(parent: Agent, chosen: list[Agent], weights: list[float], scale: float,
-                 every: list[Agent]) -> Agent:
+                 every: list[Agent], momentum: tuple[float, Agent] | None = None) -> Agent:
     """The merged agent: ``chosen`` branches (best first) with ``weights`` and ``scale``;
-    observation statistics from ``every`` valid branch (in member order)."""
+    observation statistics from ``every`` valid branch (in member order); with ``momentum``
+    ``(beta, before)``, plus ``beta`` times the step from ``before`` to ``parent``."""
     params = weighted_update(parent.params, [b.params for b in chosen], weights, scale)
+    if momentum is not None:
+        params = with_momentum(params, parent.params, momentum[1].params, momentum[0])
     opt_m = weighted_mean([b.opt_m for b in chosen], weights)
     opt_v = weighted_mean([b.opt_v for b in chosen], weights)
     norm = pooled_statistics(parent.norm, [b.norm for b in every])

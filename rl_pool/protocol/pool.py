@@ -31,6 +31,8 @@ import os
 import stat
 import time
 
+import numpy as np
+
 from rl_pool import fsutil
 from rl_pool.config import PROTOCOL, READABLE_PROTOCOLS, OldProtocol, PoolConfig
 from rl_pool.errors import UsageError
@@ -39,6 +41,7 @@ from rl_pool.maths import merge
 from rl_pool.maths.agent import Agent, max_file_bytes
 from rl_pool.protocol import claim, layout, selection
 from rl_pool.protocol.deposits import (
+    load_named_agent,
     load_selected_agent,
     parse_agent,
     read_agent,
@@ -237,8 +240,19 @@ def select(paths: Paths, i: int, cfg: PoolConfig, like: Agent, members: set[int]
     if out["winner"] == "merge":
         spec = out["merge"]
         parent = load_selected_agent(paths, i - 1, previous, like=like)
+        momentum = None
+        if "momentum" in spec:
+            try:
+                before = load_named_agent(paths, spec["momentum"]["from"], "the previous merge's parent",
+                                          paths.selected(i - 1), like)
+                if any(np.shape(before.params.get(k)) != np.shape(v) for k, v in parent.params.items()):
+                    raise ValueError("the previous merge's parent has other shapes than this pool's agents")
+                momentum = (float(spec["momentum"]["beta"]), before)
+            except (RuntimeError, ValueError) as exc:
+                # every member reads the same file, so every member drops the term alike
+                spec["momentum"] = {"skipped": str(exc)}
         merged = merge.merge_agents(parent, [agents[m] for m in spec["members"]], spec["weights"],
-                                    spec["scale"], [agents[m] for m in spec["statistics_from"]])
+                                    spec["scale"], [agents[m] for m in spec["statistics_from"]], momentum)
         data = merged.to_bytes()
         digest = sha256(data)
         path = os.path.join(paths.iteration(i), layout.merged_name(digest))

@@ -12,7 +12,7 @@ Winners:
 * ``branch``: the best valid deposit (ties to the lowest member);
 * ``parent``: the agent the iteration started from, re-scored on the same
   evaluation episodes, beat every branch (``--selection parent``);
-* ``merge``: with ``--merge mean|sum|adaptive``, two or more branches beat the parent
+* ``merge``: with ``--merge mean|sum|adaptive|momentum``, two or more branches beat the parent
   (and the fallback): the next agent is the parent plus a rank-weighted
   combination of their updates (:mod:`rl_pool.maths.merge`); it is scored in the next
   iteration, as the parent, beside the best agent this iteration evaluated
@@ -141,8 +141,9 @@ def merge_weights(k: int) -> list[float]:
 
 
 def merge_scale(kind: str, k: int, adaptive: float = 1.0) -> float:
-    """How far a merge of ``k`` branches steps, in units of their weighted mean update: ``mean`` 1
-    (a data-parallel batch: less noise, the same step), ``sum`` ``k`` (the linear scaling rule:
+    """How far a merge of ``k`` branches steps, in units of their weighted mean update: ``mean`` and
+    ``momentum`` 1 (a data-parallel batch: less noise, the same step; ``momentum`` adds its term
+    apart, :func:`merge_momentum`), ``sum`` ``k`` (the linear scaling rule:
     k branches' worth of progress in one step), ``adaptive`` the pool's current scale
     (:func:`next_scale`) capped at ``k``."""
     if kind == "sum":
@@ -154,11 +155,11 @@ def merge_scale(kind: str, k: int, adaptive: float = 1.0) -> float:
 
 def min_merged(kind: str) -> int:
     """The fewest branches a merge is made of; with fewer at the bar, the best one wins alone.
-    ``adaptive`` needs 3: the rank-weighted mean of two branches is mostly the better one shrunk
+    ``adaptive`` and ``momentum`` need 3: the rank-weighted mean of two branches is mostly the better one shrunk
     towards the other (in the default launch, the guard member's small steps), which loses the
     step size and gains little averaging; a pool of 2 members then goes on exactly as ``none``
     does (measured in docs/scaling.md)."""
-    return 3 if kind == "adaptive" else 2
+    return 3 if kind in ("adaptive", "momentum") else 2
 
 
 #: The adaptive merge's scale is multiplied by this after a merge that held its ground and divided
@@ -230,7 +231,7 @@ def decide(cfg: PoolConfig, i: int, previous: dict, reports: list[dict], skipped
     out = {"iteration": i, "considered": [{k: c[k] for k in keys} for c in considered],
            "skipped": skipped, "quorum_reason": reason,
            "parent": {"iteration": previous["iteration"], "member": previous.get("member"),
-                      "agent_sha256": sha}}
+                      "agent": previous["agent"], "agent_sha256": sha}}
     parent = None if report is None else (
         float(report["parent_eval_return"]), float(report["parent_eval_score" if shifted else "parent_eval_return"]))
     out["parent"] |= {"eval_return": parent and parent[0], "score": parent and parent[1]}
@@ -296,7 +297,7 @@ def _merge_or_pick(cfg: PoolConfig, out: dict, previous: dict, considered: list[
     if olds:
         bar = max(s for s, _, _ in olds)
         chosen = [c for c in ranked if c["score"] >= bar]
-    elif cfg.merge == "adaptive":
+    elif cfg.merge in ("adaptive", "momentum"):
         # nothing to merge against: no verdict could ever judge the merge, so the best branch wins
         chosen = ranked[:1]
     else:
@@ -318,7 +319,28 @@ def _merge_or_pick(cfg: PoolConfig, out: dict, previous: dict, considered: list[
                       "scale": merge_scale(cfg.merge, len(chosen), out.get("merge_scale", 1.0)),
                       "statistics_from": [c["member"] for c in considered]},
             "evaluated": evaluated}
+    momentum = merge_momentum(cfg, previous)
+    if momentum is not None:
+        out["merge"]["momentum"] = momentum
     return [c["member"] for c in considered]
+
+
+def merge_momentum(cfg: PoolConfig, previous: dict) -> dict | None:
+    """The momentum term of a ``--merge momentum`` merge made after ``previous``: ``{"beta",
+    "from"}``, where ``from`` names the agent the previous iteration started from, so the merge adds
+    ``beta`` times the step from that agent to the parent (:func:`rl_pool.maths.merge.merge_agents`).
+    Only when ``previous`` was itself a merge: a step that was a pick, a revert or the parent kept
+    is not a direction the pool's branches agreed on. None for other rules, with beta 0, or when
+    the previous selection does not name its parent's file."""
+    if cfg.merge != "momentum" or not cfg.merge_momentum or previous.get("winner") != "merge":
+        return None
+    grand = previous.get("parent")
+    if not (isinstance(grand, dict) and isinstance(grand.get("agent"), str)
+            and isinstance(grand.get("agent_sha256"), str)):
+        return None
+    return {"beta": cfg.merge_momentum,
+            "from": {"iteration": grand.get("iteration"), "agent": grand["agent"],
+                     "agent_sha256": grand["agent_sha256"]}}
 
 
 def track_best(out: dict, previous: dict, revert_after: int, mean: bool = False) -> dict:
