@@ -381,14 +381,14 @@ KINDS = ("open_read", "open_write", "open_missing", "open_dir", "listing", "stat
          "mkdir", "unlink")
 
 
-def _run_members(n: int, roots: list[str], iterations: int, extra: list[str], head) -> None:
+def _run_members(n: int, roots: list[str], iterations: int, extra: list[str], head, lr: float = 0.1) -> None:
     """Run an N-member pool of ``rl-pool train`` processes to its end; ``head(m)`` is the command
     line before ``train`` for member ``m``. A member exiting non-zero stops the bench in one line."""
     procs = []
     try:
         for m in range(n):
             cmd = [*head(m), "train", "--pool-dir", roots[m % len(roots)], "--pool-size", str(n), "--member",
-                   str(m), "--iterations", str(iterations), "--learning-rate", "0.1", "--quiet", *extra]
+                   str(m), "--iterations", str(iterations), "--learning-rate", str(lr), "--quiet", *extra]
             procs.append(subprocess.Popen(cmd, env=capped_environ(), stdout=subprocess.DEVNULL,
                                           stderr=subprocess.PIPE, text=True))
         for p in procs:
@@ -401,13 +401,13 @@ def _run_members(n: int, roots: list[str], iterations: int, extra: list[str], he
                 p.kill()
 
 
-def _protocol_pool(n: int, dirs: list[str], iterations: int, warmup: int, extra: list[str]) -> dict:
+def _protocol_pool(n: int, dirs: list[str], iterations: int, warmup: int, extra: list[str], lr: float) -> dict:
     name = f"bench-protocol-{n}-{os.getpid()}-{time.time_ns() % 10**6}"
     roots = [os.path.join(d, name) for d in dirs]
     counts = tempfile.mkdtemp(prefix="rl-pool-counts-")
     try:
         _run_members(n, roots, iterations, extra, lambda m: [sys.executable, os.path.abspath(__file__), "_member",
-                                                             os.path.join(counts, f"{m}.json"), "--"])
+                                                             os.path.join(counts, f"{m}.json"), "--"], lr)
         per_kind = {k: [] for k in KINDS}
         secs, cpu = [], []
         for m in range(n):
@@ -426,18 +426,23 @@ def _protocol_pool(n: int, dirs: list[str], iterations: int, warmup: int, extra:
         shutil.rmtree(roots[0], ignore_errors=True)
 
 
-def _plain_pool(n: int, dirs: list[str], iterations: int, warmup: int, extra: list[str]) -> float:
+def _plain_pool(n: int, dirs: list[str], iterations: int, warmup: int, extra: list[str],
+                lr: float) -> tuple[float, int, int]:
     """ms per iteration of the same pool with nothing counted: members run as ``rl-pool train``;
-    the mean gap between the decisions of iterations ``warmup`` and ``iterations``."""
+    the mean gap between the decisions of iterations ``warmup`` and ``iterations``; and how many of
+    the counted iterations merged, and of those how many with momentum."""
     from rl_pool.protocol import deposits, layout
 
     name = f"bench-plain-{n}-{os.getpid()}-{time.time_ns() % 10**6}"
     roots = [os.path.join(d, name) for d in dirs]
     try:
-        _run_members(n, roots, iterations, extra, lambda m: [sys.executable, "-m", "rl_pool"])
+        _run_members(n, roots, iterations, extra, lambda m: [sys.executable, "-m", "rl_pool"], lr)
         paths = layout.Paths(roots[0])
         t0, t1 = (deposits.read_selected(paths, i)["time"] for i in (warmup, iterations))
-        return 1000 * (t1 - t0) / (iterations - warmup)
+        sels = [deposits.read_selected(paths, i) for i in range(warmup + 1, iterations + 1)]
+        merges = [s for s in sels if s.get("winner") == "merge"]
+        momentum = [s for s in merges if "beta" in s["merge"].get("momentum", {})]
+        return 1000 * (t1 - t0) / (iterations - warmup), len(merges), len(momentum)
     finally:
         shutil.rmtree(roots[0], ignore_errors=True)
 
@@ -458,20 +463,23 @@ def protocol(args) -> None:
     print("per member and iteration (mean over members and iterations; ms/iter and cpu ms: median; plain: mean):")
     print(f"{'N':>4} {'merge':>8} {'ms/iter':>8} {'plain':>6} {'cpu ms':>6} {'floor':>6} {'reads':>6} {'writes':>6} "
           f"{'missing':>7} {'dir opens':>9} {'listings':>8} {'stats':>6} {'renames':>7} {'fsyncs':>6} "
-          f"{'reads <= N+3':>12}")
+          f"{'reads <= N+3':>12} {'merged':>8}")
     rows = []
     try:
         for n in args.members:
             for kind in args.merge:
-                r = _protocol_pool(n, dirs, args.iterations, args.warmup, [*extra, "--merge", kind])
-                r["plain_ms"] = _plain_pool(n, dirs, args.iterations, args.warmup, [*extra, "--merge", kind])
+                r = _protocol_pool(n, dirs, args.iterations, args.warmup, [*extra, "--merge", kind],
+                                   args.learning_rate)
+                r["plain_ms"], r["merged"], r["with_momentum"] = _plain_pool(n, dirs, args.iterations, args.warmup,
+                                                                             [*extra, "--merge", kind],
+                                                                             args.learning_rate)
                 rows.append({"members": n, "merge": kind, **r})
                 floor = n * r["cpu_ms"] / min(n, os.cpu_count() or 1)
                 print(f"{n:>4} {kind:>8} {r['ms']:>8.1f} {r['plain_ms']:>6.1f} {r['cpu_ms']:>6.1f} {floor:>6.0f} "
                       f"{r['open_read']:>6.1f} {r['open_write']:>6.1f} "
                       f"{r['open_missing']:>7.1f} {r['open_dir']:>9.1f} {r['listing']:>8.1f} {r['stat']:>6.1f} "
-                      f"{r['rename']:>7.1f} {r['fsync']:>6.1f} {'yes' if r['open_read'] <= n + 3 else 'no':>12}",
-                      flush=True)
+                      f"{r['rename']:>7.1f} {r['fsync']:>6.1f} {'yes' if r['open_read'] <= n + 3 else 'no':>12} "
+                      f"{r['merged']:>3}/{args.iterations - args.warmup:<4}", flush=True)
     finally:
         if base:
             shutil.rmtree(base, ignore_errors=True)
@@ -481,6 +489,10 @@ def protocol(args) -> None:
           f"(min(N, {os.cpu_count()})), the shortest iteration these CPUs allow whatever the protocol does;")
     print("reads/writes: files opened to read/write; missing: opens of names not there (yet): polls;")
     print("dir opens: directories opened (fsync of a directory, the no-symlink walk of rl_pool.fsutil)")
+    print("merged: counted iterations of the plain pool whose selection was a merge"
+          + (" (" + ", ".join(f"{r['merge']} N={r['members']}: {r['with_momentum']} with momentum"
+                              for r in rows if r["merge"] == "momentum") + ")"
+             if any(r["merge"] == "momentum" for r in rows) else ""))
     if args.json:
         print(json.dumps(rows))
 
@@ -572,6 +584,9 @@ def main(argv=None) -> None:
     pr.add_argument("--merge", type=lambda t: t.split(","), default=["none"],
                     help="the pools' --merge, comma-separated: each pool size runs once per rule, side by side "
                          "(e.g. none,adaptive: a merge reads every valid branch's agent and writes one more)")
+    pr.add_argument("--learning-rate", type=float, default=0.1,
+                    help="every member's rate (0.01 makes Swimmer's branches beat the parent often enough that "
+                         "the rules that merge do merge; see the merged column)")
     pr.add_argument("--json", action="store_true", help="also print the rows as one JSON list")
     pr.set_defaults(func=protocol)
     sm = sub.add_parser("simd", help="member throughput with the portable SIMD level vs all of the CPU")

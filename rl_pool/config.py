@@ -59,6 +59,10 @@ class PoolConfig:
                                        "per-episode evaluation scores beat the parent's on the same episodes "
                                        "by K standard errors of the differences (0: any branch at least as "
                                        "good)", added=True)
+    parent_patience: int = opt(0, "with --selection parent: after K iterations in a row that the parent (or a "
+                                  "merge's fallback) kept, the best branch of the next one wins even below "
+                                  "it (0: never); --revert-after and the best agent keep what was reached",
+                               added=True)
     revert_after: int = opt(0, "go back to the best selected agent after K iterations without a new best "
                                "(0: never)")
     best_score: str = opt("first", "what ranks the best selected agent (the one --revert-after goes back to): "
@@ -137,6 +141,10 @@ class PoolConfig:
             raise UsageError("--selection-margin needs --selection parent (it is a margin over the parent)")
         if not (math.isfinite(self.merge_momentum) and 0.0 <= self.merge_momentum < 1.0):
             raise UsageError(f"--merge-momentum must be in [0, 1), got {self.merge_momentum}")
+        if self.parent_patience < 0:
+            raise UsageError(f"--parent-patience must be >= 0, got {self.parent_patience}")
+        if self.parent_patience and self.selection != "parent":
+            raise UsageError("--parent-patience needs --selection parent (it ends a run of parent wins)")
         if self.revert_after < 0:
             raise UsageError(f"--revert-after must be >= 0, got {self.revert_after}")
         try:

@@ -312,8 +312,10 @@ def test_the_momentum_term(name, beta, previous, want):
     other, _ = selection.decide(_cfg("adaptive", n=4, merge_momentum=0.5), 2, prev, [_report(*r) for r in rows],
                                 [], "complete")
     assert "momentum" not in other["merge"]
-    # every selection names the file of the agent it started from: the next merge's momentum needs it
+    # a momentum pool's selection names the file of the agent it started from (the next merge's
+    # momentum needs it); other pools' records stay as they were
     assert out["parent"]["agent"] == previous["agent"]
+    assert "agent" not in other["parent"]
 
 
 def test_momentum_is_a_pool_setting_in_zero_to_one():
@@ -335,7 +337,9 @@ def test_two_members_with_the_momentum_merge_decide_as_without_a_merge(rows):
     reports = [_report(m, r, p) for m, r, p in rows]
     for previous in (PREVIOUS, MERGED_BEFORE):
         plain = selection.decide(_cfg("none", n=2), 1, previous, reports, [], "complete")
-        assert selection.decide(_cfg("momentum", n=2), 1, previous, reports, [], "complete") == plain
+        out, needs = selection.decide(_cfg("momentum", n=2), 1, previous, reports, [], "complete")
+        assert out["parent"].pop("agent") == previous["agent"]  # the record names the parent's file too
+        assert (out, needs) == plain
 
 
 # ---------------------------------------------------------------- the store
@@ -458,3 +462,36 @@ def test_a_second_merge_in_a_row_takes_momentum_from_the_files(tmp_path, grandpa
         else:  # a file that fails its hash adds nothing, and the record says why
             assert "does not match the hash" in second["merge"]["momentum"]["skipped"]
         np.testing.assert_allclose(merged.params[name], want, rtol=1e-12, atol=1e-12)
+
+
+# ---------------------------------------------------------------- patience with the parent, as a table
+PATIENCE_CASES = [
+    # (name, merge, previous streak, [(member, return, parent report)], winner, streak after, patience recorded)
+    ("the parent keeps the pool: the streak grows", "none", 1, [(0, 3.0, 4.0), (1, 2.0, None)], "parent", 2, None),
+    ("a branch at the bar wins: the streak ends", "none", 2, [(0, 5.0, 4.0), (1, 2.0, None)], "branch", 0, None),
+    ("K parent wins in a row: the best branch wins below the parent", "none", 3,
+     [(0, 3.0, 4.0), (1, 3.5, None)], "branch", 0, 3),
+    ("the same with merges: the best branch, not a merge of branches below the bar", "momentum", 3,
+     [(0, 3.0, 4.0), (1, 3.5, None), (2, 3.2, None)], "branch", 0, 3),
+    ("a garbled streak counts as none", "none", "x", [(0, 3.0, 4.0), (1, 2.0, None)], "parent", 1, None),
+]
+
+
+@pytest.mark.parametrize("name,kind,streak,rows,winner,after,patience", PATIENCE_CASES,
+                         ids=[c[0] for c in PATIENCE_CASES])
+def test_parent_patience(name, kind, streak, rows, winner, after, patience):
+    cfg = _cfg(kind, n=4, parent_patience=3)
+    out, _ = selection.decide(cfg, 1, PREVIOUS | {"parent_streak": streak}, [_report(*r) for r in rows], [],
+                              "complete")
+    assert out["winner"] == winner and out["parent_streak"] == after and out.get("patience") == patience
+    if patience:
+        assert out["member"] == max(rows, key=lambda r: r[1])[0]
+
+
+def test_without_patience_the_records_carry_no_streak():
+    out, _ = selection.decide(_cfg("none", n=2), 1, PREVIOUS | {"parent_streak": 9},
+                              [_report(0, 3.0, 4.0), _report(1, 2.0)], [], "complete")
+    assert out["winner"] == "parent" and "parent_streak" not in out and "patience" not in out
+    for bad, why in ((-1, "--parent-patience must be"), (3, "--parent-patience needs --selection parent")):
+        with pytest.raises(UsageError, match=why):
+            _cfg("none", parent_patience=bad, selection="branches" if bad > 0 else "parent")

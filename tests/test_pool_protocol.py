@@ -398,8 +398,8 @@ def test_parent_competes_and_keeps_the_pool_from_losing_ground(tmp_path):
         deposit(paths, 2, m, r, seed=10 + m, parent=9.0)
     sel = _decide(paths, cfg, 2, {0, 1, 2})
     assert (sel["winner"], sel["member"]) == ("branch", 0)
-    assert sel["parent"] == {"iteration": 1, "member": None, "agent": "iterations/000000/initial.npz",
-                             "agent_sha256": start["agent_sha256"], "eval_return": 9.0, "score": 9.0}
+    assert sel["parent"] == {"iteration": 1, "member": None, "agent_sha256": start["agent_sha256"],
+                             "eval_return": 9.0, "score": 9.0}
 
 
 def test_parent_score_needs_the_right_parent_and_the_parent_rule(tmp_path):

@@ -9,7 +9,8 @@ from rl_pool.commands import cli, presets
 from rl_pool.config import MemberConfig, PoolConfig
 
 POOL_FIELDS = {f.name for f in fields(PoolConfig)}
-KNOWN = POOL_FIELDS | {f.name for f in fields(MemberConfig)} | {"learning_rates", "merged_batch_episodes"}
+KNOWN = POOL_FIELDS | {f.name for f in fields(MemberConfig)} | {"learning_rates", "merged_batch_episodes",
+                                                                              "merged_merge"}
 
 
 def _launch_config(name, tmp_path, *extra):
@@ -88,6 +89,17 @@ def test_every_preset_is_in_the_docs_tables(doc):
 def test_halfcheetah_batch_halves_in_pools_that_merge(extra, batch, tmp_path):
     _, cfg = _launch_config("halfcheetah", tmp_path, *extra)
     assert cfg.batch_episodes == batch
+
+
+@pytest.mark.parametrize("extra,merge", [
+    ((), "adaptive"), (("--pool-size", "2"), "adaptive"),  # 2 members: pool.json as before
+    (("--pool-size", "3"), "momentum"), (("--pool-size", "16"), "momentum"),
+    (("--pool-size", "8", "--merge", "adaptive"), "adaptive"),  # given explicitly, it wins
+])
+def test_halfcheetah_merges_with_momentum_in_pools_of_three_or_more(extra, merge, tmp_path):
+    _, cfg = _launch_config("halfcheetah", tmp_path, *extra)
+    assert cfg.merge == merge
+    assert cfg.batch_episodes == (5 if merge != "none" and cfg.pool_size >= 3 else 10)
 
 
 def test_merged_batch_only_where_a_preset_has_one():

@@ -3,8 +3,9 @@
 A preset fills in options the command line leaves out: explicit options win.
 Pool-wide values go to ``pool.json`` like any option; ``learning_rates`` gives
 one rate per member (``launch``; ``train --member I`` takes the I-th) and
-``pool_size`` its length; ``merged_batch_episodes`` replaces ``batch_episodes``
-in pools of 3 or more members that merge adaptively (:func:`batch_episodes`).
+``pool_size`` its length; in pools of 3 or more members, ``merged_merge`` is the
+``--merge`` rule (:func:`merge`) and ``merged_batch_episodes`` replaces
+``batch_episodes`` when that rule merges with the rule of three (:func:`batch_episodes`).
 """
 
 from __future__ import annotations
@@ -16,7 +17,7 @@ from rl_pool.errors import UsageError
 PRESETS: dict[str, dict] = {
     "swimmer": {"env": "Swimmer-v5", "learning_rates": [0.01, 0.1]},
     "halfcheetah": {"env": "HalfCheetah-v5", "policy": "mlp", "hidden": "64,64", "init_shape": 20.0,
-                    "learning_rates": [0.001, 0.003], "merged_batch_episodes": 5},
+                    "learning_rates": [0.001, 0.003], "merged_batch_episodes": 5, "merged_merge": "momentum"},
     "hopper": {"env": "Hopper-v5", "reward_shift": 1.0, "selection": "branches", "revert_after": 20,
                "eval_episodes": 10, "train_episodes": 40, "batch_episodes": 20, "learning_rates": [0.01, 0.03]},
     "walker2d": {"env": "Walker2d-v5", "reward_shift": 1.0, "selection": "branches", "revert_after": 20,
@@ -59,9 +60,17 @@ def learning_rates(preset: dict, pool_size: int) -> list[float] | None:
     return [float(lrs[0])] + [float(lrs[-1])] * (pool_size - 1)
 
 
+def merge(preset: dict, pool_size: int) -> str | None:
+    """The preset's ``--merge`` for a pool of ``pool_size``: its ``merged_merge`` in a pool of 3 or
+    more members, else None (the default). A pool of 2 decides alike under every rule that merges
+    from three branches, so its ``pool.json`` stays as the preset made it before."""
+    return preset.get("merged_merge") if pool_size >= 3 else None
+
+
 def batch_episodes(preset: dict, pool_size: int, merge: str) -> int | None:
     """The preset's episodes per gradient step for a pool of ``pool_size``: its
-    ``merged_batch_episodes`` in a pool of 3 or more members that merges adaptively (each member
+    ``merged_batch_episodes`` in a pool of 3 or more members that merges from three branches
+    (``adaptive`` or ``momentum``; each member
     takes more, noisier steps per iteration and the merge averages the noise; docs/scaling.md,
     HalfCheetah), else its ``batch_episodes`` (None: the default, min(10, E))."""
     if pool_size >= 3 and merge in ("adaptive", "momentum") and "merged_batch_episodes" in preset:

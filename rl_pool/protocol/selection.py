@@ -212,6 +212,10 @@ def decide(cfg: PoolConfig, i: int, previous: dict, reports: list[dict], skipped
     sha = previous["agent_sha256"]
     report = parent_report(docs, sha, shifted) if rescores_parent(cfg, previous) else None
     competes = report is not None and cfg.selection == "parent"
+    streak = parent_streak(previous)
+    patience_out = bool(cfg.parent_patience) and streak >= cfg.parent_patience and competes
+    if patience_out:  # the parent has kept the pool long enough: this time the branches compete alone
+        competes = False
     parent_eps = None
     if competes and cfg.selection_margin:
         def parent_episodes(doc):
@@ -231,7 +235,10 @@ def decide(cfg: PoolConfig, i: int, previous: dict, reports: list[dict], skipped
     out = {"iteration": i, "considered": [{k: c[k] for k in keys} for c in considered],
            "skipped": skipped, "quorum_reason": reason,
            "parent": {"iteration": previous["iteration"], "member": previous.get("member"),
-                      "agent": previous["agent"], "agent_sha256": sha}}
+                      "agent_sha256": sha}}
+    if cfg.merge == "momentum":  # the next merge's momentum starts from this agent's file
+        out["parent"] = {"iteration": previous["iteration"], "member": previous.get("member"),
+                         "agent": previous["agent"], "agent_sha256": sha}
     parent = None if report is None else (
         float(report["parent_eval_return"]), float(report["parent_eval_score" if shifted else "parent_eval_return"]))
     out["parent"] |= {"eval_return": parent and parent[0], "score": parent and parent[1]}
@@ -262,7 +269,18 @@ def decide(cfg: PoolConfig, i: int, previous: dict, reports: list[dict], skipped
         else:
             out |= branch(best)
             needs = [top]
+    if patience_out:
+        out["patience"] = streak
+    if cfg.parent_patience:
+        out["parent_streak"] = streak + 1 if out["winner"] in ("parent", "fallback") else 0
     return track_best(out, previous, cfg.revert_after, cfg.best_score == "mean"), needs
+
+
+def parent_streak(previous: dict) -> int:
+    """How many iterations in a row, up to ``previous``, the parent or a merge's fallback kept the pool
+    (``--parent-patience``; 0 when the record has no valid count)."""
+    n = previous.get("parent_streak")
+    return n if isinstance(n, int) and not isinstance(n, bool) and n >= 0 else 0
 
 
 def _merge_or_pick(cfg: PoolConfig, out: dict, previous: dict, considered: list[dict], docs: list[dict],
