@@ -60,8 +60,9 @@ class PoolConfig:
                                        "by K standard errors of the differences (0: any branch at least as "
                                        "good)", added=True)
     parent_patience: int = opt(0, "with --selection parent: after K iterations in a row that the parent (or a "
-                                  "merge's fallback) kept, the best branch of the next one wins even below "
-                                  "it (0: never); --revert-after and the best agent keep what was reached",
+                                  "merge's fallback) kept, the next one's branches compete without it, as with "
+                                  "--selection branches (0: never); --revert-after and the best agent keep "
+                                  "what was reached",
                                added=True)
     revert_after: int = opt(0, "go back to the best selected agent after K iterations without a new best "
                                "(0: never)")

@@ -352,13 +352,13 @@ def _deposits(paths, n, returns, parent_return, seed0=10):
         deposits.deposit(paths, 1, m, a, {"eval_return": returns[m], **extra})
 
 
-def _select_in_fresh_process(root, key_hex, out):
+def _select_in_fresh_process(root, key_hex, out, i=1):
     os.environ["RL_POOL_KEY"] = key_hex
     paths = layout.Paths(root)
     cfg = pool.read_config(paths)
     pool.attach_key(paths)
-    sel = pool.select(paths, 1, cfg, deposits.load_selected_agent(paths, 0), {0, 1, 2}, "complete",
-                      deposits.read_selected(paths, 0))
+    sel = pool.select(paths, i, cfg, deposits.load_selected_agent(paths, i - 1), {0, 1, 2}, "complete",
+                      deposits.read_selected(paths, i - 1))
     with open(out, "w") as fh:
         json.dump(sel, fh)
 
@@ -435,7 +435,9 @@ def _deposit_iteration(paths, i, n, returns, parent_return, seed0):
 
 
 @pytest.mark.parametrize("grandparent", ["intact", "replaced by another agent"])
-def test_a_second_merge_in_a_row_takes_momentum_from_the_files(tmp_path, grandparent):
+def test_a_second_merge_in_a_row_takes_momentum_from_the_files(tmp_path, monkeypatch, grandparent):
+    key_hex = "b8" * 32
+    monkeypatch.setenv("RL_POOL_KEY", key_hex)
     paths, cfg = make_pool(tmp_path / "p", pool_size=3, merge="momentum", merge_momentum=0.5)
     _deposit_iteration(paths, 1, 3, [5.0, 7.0, 6.0], 4.0, seed0=10)
     first = pool.select(paths, 1, cfg, deposits.load_selected_agent(paths, 0), {0, 1, 2}, "complete",
@@ -462,6 +464,17 @@ def test_a_second_merge_in_a_row_takes_momentum_from_the_files(tmp_path, grandpa
         else:  # a file that fails its hash adds nothing, and the record says why
             assert "does not match the hash" in second["merge"]["momentum"]["skipped"]
         np.testing.assert_allclose(merged.params[name], want, rtol=1e-12, atol=1e-12)
+    # another process, from the same files, makes the same bytes
+    mine = fsutil.read_bytes(os.path.join(paths.root, second["agent"]), 1 << 20)
+    os.remove(os.path.join(paths.root, second["agent"]))
+    proc = multiprocessing.get_context("spawn").Process(
+        target=_select_in_fresh_process, args=(str(paths.root), key_hex, str(tmp_path / "sel.json"), 2))
+    proc.start()
+    proc.join(120)
+    assert proc.exitcode == 0
+    theirs = json.loads((tmp_path / "sel.json").read_text())
+    assert theirs == json.loads(json.dumps(second))
+    assert fsutil.read_bytes(os.path.join(paths.root, theirs["agent"]), 1 << 20) == mine
 
 
 # ---------------------------------------------------------------- patience with the parent, as a table
