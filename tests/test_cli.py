@@ -243,3 +243,12 @@ def test_training_picks_no_gl_backend(tmp_path):
                           capture_output=True, text=True, timeout=180, env=env, cwd=ROOT)
     assert proc.returncode == 0, proc.stderr
     assert "MUJOCO_GL None EGL False" in proc.stdout
+
+
+def test_merge_momentum_without_the_momentum_merge_is_refused(tmp_path):
+    """A preset's 2-member pool keeps the default --merge, so a momentum for it means nothing."""
+    for args in (["--preset", "halfcheetah", "--pool-size", 2], ["--merge", "adaptive", "--pool-size", 4]):
+        proc = rl_pool("launch", "--pool-dir", tmp_path / "p", *args, "--merge-momentum", 0.7, "--iterations", 1)
+        assert proc.returncode == 2 and len(proc.stderr.strip().splitlines()) == 1, proc.stderr
+        assert "--merge-momentum needs --merge momentum" in proc.stderr
+        assert not (tmp_path / "p").exists()

@@ -14,6 +14,7 @@ from rl_pool import fsutil
 from rl_pool.config import PoolConfig
 from rl_pool.errors import UsageError
 from rl_pool.maths import merge, normalizer
+from rl_pool.maths.agent import Agent, AgentMeta
 from rl_pool.maths.normalizer import NormState
 from rl_pool.protocol import deposits, layout, pool, selection
 
@@ -297,6 +298,9 @@ MOMENTUM_CASES = [
     ("a previous selection that does not name its parent's file: none", 0.5,
      MERGED_BEFORE | {"parent": {k: v for k, v in GRAND.items() if k != "agent"}}, None),
     ("a garbled parent record: none", 0.5, MERGED_BEFORE | {"parent": "x"}, None),
+    ("after a fallback took over: none", 0.5, MERGED_BEFORE | {"winner": "fallback"}, None),
+    ("after a revert: none", 0.5, MERGED_BEFORE | {"winner": "revert"}, None),
+    ("after an iteration without a valid deposit: none", 0.5, MERGED_BEFORE | {"winner": "carried"}, None),
 ]
 
 
@@ -434,7 +438,7 @@ def _deposit_iteration(paths, i, n, returns, parent_return, seed0):
         deposits.deposit(paths, i, m, agent(seed0 + m), {"iteration": i, "eval_return": returns[m], **extra})
 
 
-@pytest.mark.parametrize("grandparent", ["intact", "replaced by another agent"])
+@pytest.mark.parametrize("grandparent", ["intact", "replaced by another agent", "missing"])
 def test_a_second_merge_in_a_row_takes_momentum_from_the_files(tmp_path, monkeypatch, grandparent):
     key_hex = "b8" * 32
     monkeypatch.setenv("RL_POOL_KEY", key_hex)
@@ -449,7 +453,10 @@ def test_a_second_merge_in_a_row_takes_momentum_from_the_files(tmp_path, monkeyp
     g = deposits.load_selected_agent(paths, 0)
     if grandparent != "intact":
         deposits._parsed.clear()  # as in a member that never parsed it
-        fsutil.atomic_write(paths.initial(), agent(99).to_bytes())
+        if grandparent == "missing":
+            os.remove(paths.initial())
+        else:
+            fsutil.atomic_write(paths.initial(), agent(99).to_bytes())
     parent = deposits.load_selected_agent(paths, 1, first)
     second = pool.select(paths, 2, cfg, parent, {0, 1, 2}, "complete", first)
     assert second["winner"] == "merge" and second["merge"]["members"] == [0, 2, 1]
@@ -461,8 +468,11 @@ def test_a_second_merge_in_a_row_takes_momentum_from_the_files(tmp_path, monkeyp
         if grandparent == "intact":
             assert second["merge"]["momentum"]["from"]["agent_sha256"] == layout.sha256(g.to_bytes())
             want = want + 0.5 * (parent.params[name] - g.params[name])
-        else:  # a file that fails its hash adds nothing, and the record says why
-            assert "does not match the hash" in second["merge"]["momentum"]["skipped"]
+        else:  # a file that fails its hash or is gone adds nothing, and the record says why
+            why = second["merge"]["momentum"]["skipped"]
+            assert ("does not match the hash" if grandparent.startswith("replaced") else "No such file") in why
+            # naming the file as the pool does, not as this host mounts it
+            assert "iterations/000000/initial.npz" in why and str(paths.root) not in why
         np.testing.assert_allclose(merged.params[name], want, rtol=1e-12, atol=1e-12)
     # another process, from the same files, makes the same bytes
     mine = fsutil.read_bytes(os.path.join(paths.root, second["agent"]), 1 << 20)
@@ -508,3 +518,28 @@ def test_without_patience_the_records_carry_no_streak():
     for bad, why in ((-1, "--parent-patience must be"), (3, "--parent-patience needs --selection parent")):
         with pytest.raises(UsageError, match=why):
             _cfg("none", parent_patience=bad, selection="branches" if bad > 0 else "parent")
+
+
+def test_a_momentum_source_of_other_shapes_adds_nothing(tmp_path):
+    paths, _ = make_pool(tmp_path / "p", pool_size=3, merge="momentum")
+    other = Agent.initial(AgentMeta("Swimmer-v5", {}, 60, 9, 2, (-1.0, -1.0), (1.0, 1.0)))
+    data = other.to_bytes()
+    fsutil.atomic_write(os.path.join(paths.iteration(0), "other.npz"), data)
+    term = {"beta": 0.5, "from": {"iteration": 0, "agent": "iterations/000000/other.npz",
+                                  "agent_sha256": layout.sha256(data)}}
+    got, why = pool._momentum_term(paths, 2, term, agent(1), agent(1))
+    assert got is None and "other shapes" in why
+    term["from"] = {"iteration": 0, "agent": "../outside.npz", "agent_sha256": "0" * 64}
+    got, why = pool._momentum_term(paths, 2, term, agent(1), agent(1))
+    assert got is None and "outside the pool" in why
+
+
+def test_a_revert_ends_the_parent_streak_and_nothing_deposited_keeps_it():
+    best = {"iteration": 0, "eval_return": 99.0, "score": 99.0, "agent": "x.npz", "agent_sha256": "b" * 64}
+    cfg = _cfg("none", n=2, parent_patience=5, revert_after=1)
+    out, _ = selection.decide(cfg, 1, PREVIOUS | {"best": best, "parent_streak": 2},
+                              [_report(0, 3.0, 4.0), _report(1, 2.0)], [], "complete")
+    assert out["winner"] == "revert" and out["parent_streak"] == 0
+    out, _ = selection.decide(_cfg("none", n=2, parent_patience=5), 1, PREVIOUS | {"parent_streak": 2}, [],
+                              [{"member": 0, "reason": "missing"}, {"member": 1, "reason": "missing"}], "quorum")
+    assert out["winner"] == "carried" and out["parent_streak"] == 2

@@ -242,15 +242,9 @@ def select(paths: Paths, i: int, cfg: PoolConfig, like: Agent, members: set[int]
         parent = load_selected_agent(paths, i - 1, previous, like=like)
         momentum = None
         if "momentum" in spec:
-            try:
-                before = load_named_agent(paths, spec["momentum"]["from"], "the previous merge's parent",
-                                          paths.selected(i - 1), like)
-                if any(np.shape(before.params.get(k)) != np.shape(v) for k, v in parent.params.items()):
-                    raise ValueError("the previous merge's parent has other shapes than this pool's agents")
-                momentum = (float(spec["momentum"]["beta"]), before)
-            except (RuntimeError, ValueError) as exc:
-                # every member reads the same file, so every member drops the term alike
-                spec["momentum"] = {"skipped": str(exc)}
+            momentum, why = _momentum_term(paths, i, spec["momentum"], parent, like)
+            if why is not None:
+                spec["momentum"] = {"skipped": why}
         merged = merge.merge_agents(parent, [agents[m] for m in spec["members"]], spec["weights"],
                                     spec["scale"], [agents[m] for m in spec["statistics_from"]], momentum)
         data = merged.to_bytes()
@@ -261,6 +255,22 @@ def select(paths: Paths, i: int, cfg: PoolConfig, like: Agent, members: set[int]
         parse_agent(data, digest, path)  # every member trains from it next: parsed once
         out |= {"agent": paths.rel(path), "agent_sha256": digest}
     return out
+
+
+def _momentum_term(paths: Paths, i: int, term: dict, parent: Agent, like: Agent):
+    """``((beta, P'), None)`` for the momentum ``term`` of iteration ``i``'s merge, P' being the
+    agent its ``from`` names (checked against its hash and this pool's shapes), or ``(None, why)``
+    when that agent cannot be used: then the merge goes without the term and says why. The reason
+    names files relative to the pool, so records read the same from any mount point. A member that
+    still holds P' parsed (by its hash) does not read the file again; whichever member publishes
+    the selection first decides for all."""
+    try:
+        before = load_named_agent(paths, term["from"], "the previous merge's parent", paths.selected(i - 1), like)
+    except (OSError, RuntimeError, ValueError, UsageError) as exc:
+        return None, str(exc).replace(paths.root + os.sep, "")
+    if any(np.shape(before.params.get(k)) != np.shape(v) for k, v in parent.params.items()):
+        return None, "the previous merge's parent has other shapes than this pool's agents"
+    return (float(term["beta"]), before), None
 
 
 def publish_selection(paths: Paths, selection: dict, by: int) -> tuple[dict, bool]:

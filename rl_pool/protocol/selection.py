@@ -271,14 +271,17 @@ def decide(cfg: PoolConfig, i: int, previous: dict, reports: list[dict], skipped
             needs = [top]
     if patience_out:
         out["patience"] = streak
-    if cfg.parent_patience:
-        out["parent_streak"] = streak + 1 if out["winner"] in ("parent", "fallback") else 0
-    return track_best(out, previous, cfg.revert_after, cfg.best_score == "mean"), needs
+    out = track_best(out, previous, cfg.revert_after, cfg.best_score == "mean")
+    if cfg.parent_patience:  # after track_best: a parent kept and then reverted is no longer a parent kept
+        kept, nothing = out["winner"] in ("parent", "fallback"), out["winner"] == "carried"
+        out["parent_streak"] = streak + 1 if kept else streak if nothing else 0
+    return out, needs
 
 
 def parent_streak(previous: dict) -> int:
     """How many iterations in a row, up to ``previous``, the parent or a merge's fallback kept the pool
-    (``--parent-patience``; 0 when the record has no valid count)."""
+    (``--parent-patience``; an iteration without a valid deposit, ``carried``, neither counts nor
+    ends the run; a revert ends it; 0 when the record has no valid count)."""
     n = previous.get("parent_streak")
     return n if isinstance(n, int) and not isinstance(n, bool) and n >= 0 else 0
 
