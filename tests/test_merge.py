@@ -543,3 +543,27 @@ def test_a_revert_ends_the_parent_streak_and_nothing_deposited_keeps_it():
     out, _ = selection.decide(_cfg("none", n=2, parent_patience=5), 1, PREVIOUS | {"parent_streak": 2}, [],
                               [{"member": 0, "reason": "missing"}, {"member": 1, "reason": "missing"}], "quorum")
     assert out["winner"] == "carried" and out["parent_streak"] == 2
+
+
+def test_merge_steps_benchmark_prints_the_cosine_of_consecutive_merges(tmp_path, capsys):
+    import importlib.util
+
+    script = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "benchmarks", "merge_steps.py")
+    spec = importlib.util.spec_from_file_location("merge_steps_benchmark", script)
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    paths, cfg = make_pool(tmp_path / "p", pool_size=3, merge="momentum")
+    for i, (returns, parent_return, seed0) in enumerate([([5.0, 7.0, 6.0], 4.0, 10), ([9.0, 8.0, 8.5], 7.5, 20)], 1):
+        _deposit_iteration(paths, i, 3, returns, parent_return, seed0)
+        sel = pool.select(paths, i, cfg, deposits.load_selected_agent(paths, i - 1), {0, 1, 2}, "complete",
+                          deposits.read_selected(paths, i - 1))
+        assert sel["winner"] == "merge"
+        pool.publish_selection(paths, sel, by=0)
+    a = [mod.flat(deposits.load_selected_agent(paths, i)) for i in range(3)]
+    s1, s2 = a[1] - a[0], a[2] - a[1]
+    capsys.readouterr()
+    assert mod.main([str(paths.root)]) == 0
+    rows = [line.split() for line in capsys.readouterr().out.splitlines()[1:]]
+    assert [int(r[0]) for r in rows] == [1, 2]
+    assert float(rows[0][1]) == pytest.approx(np.linalg.norm(s1), abs=1e-4)
+    assert float(rows[0][2]) == pytest.approx(s1 @ s2 / np.linalg.norm(s1) / np.linalg.norm(s2), abs=1e-3)
