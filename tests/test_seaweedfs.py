@@ -60,7 +60,10 @@ def _read(path) -> bytes | None:
 def _eventually(fn, timeout=5.0):
     deadline = time.time() + timeout
     while True:
-        got = fn()
+        try:
+            got = fn()
+        except OSError:  # a name just replaced through the other mount can vanish here for a moment
+            got = None
         if got or time.time() > deadline:
             return got
         time.sleep(0.02)
