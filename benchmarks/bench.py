@@ -479,7 +479,8 @@ def protocol(args) -> None:
                       f"{r['open_read']:>6.1f} {r['open_write']:>6.1f} "
                       f"{r['open_missing']:>7.1f} {r['open_dir']:>9.1f} {r['listing']:>8.1f} {r['stat']:>6.1f} "
                       f"{r['rename']:>7.1f} {r['fsync']:>6.1f} {'yes' if r['open_read'] <= n + 3 else 'no':>12} "
-                      f"{r['merged']:>3}/{args.iterations - args.warmup:<4}", flush=True)
+                      f"{r['merged']:>3}/{args.iterations - args.warmup}"
+                      + (f" ({r['with_momentum']} with momentum)" if kind == "momentum" else ""), flush=True)
     finally:
         if base:
             shutil.rmtree(base, ignore_errors=True)
@@ -489,10 +490,8 @@ def protocol(args) -> None:
           f"(min(N, {os.cpu_count()})), the shortest iteration these CPUs allow whatever the protocol does;")
     print("reads/writes: files opened to read/write; missing: opens of names not there (yet): polls;")
     print("dir opens: directories opened (fsync of a directory, the no-symlink walk of rl_pool.fsutil)")
-    print("merged: counted iterations of the plain pool whose selection was a merge"
-          + (" (" + ", ".join(f"{r['merge']} N={r['members']}: {r['with_momentum']} with momentum"
-                              for r in rows if r["merge"] == "momentum") + ")"
-             if any(r["merge"] == "momentum" for r in rows) else ""))
+    print("merged: counted iterations of the plain pool whose selection was a merge (and, with momentum, "
+          "how many of those added the momentum term)")
     if args.json:
         print(json.dumps(rows))
 

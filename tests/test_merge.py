@@ -527,10 +527,10 @@ def test_a_momentum_source_of_other_shapes_adds_nothing(tmp_path):
     fsutil.atomic_write(os.path.join(paths.iteration(0), "other.npz"), data)
     term = {"beta": 0.5, "from": {"iteration": 0, "agent": "iterations/000000/other.npz",
                                   "agent_sha256": layout.sha256(data)}}
-    got, why = pool._momentum_term(paths, 2, term, agent(1), agent(1))
+    got, why = pool._momentum_term(paths, 2, term, agent(1))
     assert got is None and "other shapes" in why
     term["from"] = {"iteration": 0, "agent": "../outside.npz", "agent_sha256": "0" * 64}
-    got, why = pool._momentum_term(paths, 2, term, agent(1), agent(1))
+    got, why = pool._momentum_term(paths, 2, term, agent(1))
     assert got is None and "outside the pool" in why
 
 

@@ -11,6 +11,7 @@ one rate per member (``launch``; ``train --member I`` takes the I-th) and
 from __future__ import annotations
 
 from rl_pool.errors import UsageError
+from rl_pool.protocol.selection import RULES_OF_THREE
 
 #: Each preset was chosen by measured runs; why each value is there, with the runs that decided
 #: it, is in docs/results.md (one section per task) and the dated notebook, docs/notebook.md.
@@ -73,7 +74,7 @@ def batch_episodes(preset: dict, pool_size: int, merge: str) -> int | None:
     (``adaptive`` or ``momentum``; each member
     takes more, noisier steps per iteration and the merge averages the noise; docs/scaling.md,
     HalfCheetah), else its ``batch_episodes`` (None: the default, min(10, E))."""
-    if pool_size >= 3 and merge in ("adaptive", "momentum") and "merged_batch_episodes" in preset:
+    if pool_size >= 3 and merge in RULES_OF_THREE and "merged_batch_episodes" in preset:
         return preset["merged_batch_episodes"]
     return preset.get("batch_episodes")
 

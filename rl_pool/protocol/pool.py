@@ -31,8 +31,6 @@ import os
 import stat
 import time
 
-import numpy as np
-
 from rl_pool import fsutil
 from rl_pool.config import PROTOCOL, READABLE_PROTOCOLS, OldProtocol, PoolConfig
 from rl_pool.errors import UsageError
@@ -242,7 +240,7 @@ def select(paths: Paths, i: int, cfg: PoolConfig, like: Agent, members: set[int]
         parent = load_selected_agent(paths, i - 1, previous, like=like)
         momentum = None
         if "momentum" in spec:
-            momentum, why = _momentum_term(paths, i, spec["momentum"], parent, like)
+            momentum, why = _momentum_term(paths, i, spec["momentum"], like)
             if why is not None:
                 spec["momentum"] = {"skipped": why}
         merged = merge.merge_agents(parent, [agents[m] for m in spec["members"]], spec["weights"],
@@ -257,9 +255,10 @@ def select(paths: Paths, i: int, cfg: PoolConfig, like: Agent, members: set[int]
     return out
 
 
-def _momentum_term(paths: Paths, i: int, term: dict, parent: Agent, like: Agent):
+def _momentum_term(paths: Paths, i: int, term: dict, like: Agent):
     """``((beta, P'), None)`` for the momentum ``term`` of iteration ``i``'s merge, P' being the
-    agent its ``from`` names (checked against its hash and this pool's shapes), or ``(None, why)``
+    agent its ``from`` names (checked against its hash and, as deposits are, against this pool's
+    env and policy: ``like``'s meta), or ``(None, why)``
     when that agent cannot be used: then the merge goes without the term and says why. The reason
     names files relative to the pool, so records read the same from any mount point. A member that
     still holds P' parsed (by its hash) does not read the file again; whichever member publishes
@@ -268,8 +267,8 @@ def _momentum_term(paths: Paths, i: int, term: dict, parent: Agent, like: Agent)
         before = load_named_agent(paths, term["from"], "the previous merge's parent", paths.selected(i - 1), like)
     except (OSError, RuntimeError, ValueError, UsageError) as exc:
         return None, str(exc).replace(paths.root + os.sep, "")
-    if any(np.shape(before.params.get(k)) != np.shape(v) for k, v in parent.params.items()):
-        return None, "the previous merge's parent has other shapes than this pool's agents"
+    if before.meta != like.meta:
+        return None, "the previous merge's parent has other shapes than this pool's agents (another env or policy)"
     return (float(term["beta"]), before), None
 
 

@@ -153,13 +153,18 @@ def merge_scale(kind: str, k: int, adaptive: float = 1.0) -> float:
     return 1.0
 
 
+#: The rules that merge only from three or more branches at the bar, so that a merge is always
+#: judged in the next iteration; with 2 members they decide as ``none`` (:func:`min_merged`).
+RULES_OF_THREE = ("adaptive", "momentum")
+
+
 def min_merged(kind: str) -> int:
     """The fewest branches a merge is made of; with fewer at the bar, the best one wins alone.
     ``adaptive`` and ``momentum`` need 3: the rank-weighted mean of two branches is mostly the better one shrunk
     towards the other (in the default launch, the guard member's small steps), which loses the
     step size and gains little averaging; a pool of 2 members then goes on exactly as ``none``
     does (measured in docs/scaling.md)."""
-    return 3 if kind in ("adaptive", "momentum") else 2
+    return 3 if kind in RULES_OF_THREE else 2
 
 
 #: The adaptive merge's scale is multiplied by this after a merge that held its ground and divided
@@ -237,8 +242,7 @@ def decide(cfg: PoolConfig, i: int, previous: dict, reports: list[dict], skipped
            "parent": {"iteration": previous["iteration"], "member": previous.get("member"),
                       "agent_sha256": sha}}
     if cfg.merge == "momentum":  # the next merge's momentum starts from this agent's file
-        out["parent"] = {"iteration": previous["iteration"], "member": previous.get("member"),
-                         "agent": previous["agent"], "agent_sha256": sha}
+        out["parent"]["agent"] = previous["agent"]
     parent = None if report is None else (
         float(report["parent_eval_return"]), float(report["parent_eval_score" if shifted else "parent_eval_return"]))
     out["parent"] |= {"eval_return": parent and parent[0], "score": parent and parent[1]}
@@ -318,7 +322,7 @@ def _merge_or_pick(cfg: PoolConfig, out: dict, previous: dict, considered: list[
     if olds:
         bar = max(s for s, _, _ in olds)
         chosen = [c for c in ranked if c["score"] >= bar]
-    elif cfg.merge in ("adaptive", "momentum"):
+    elif cfg.merge in RULES_OF_THREE:
         # nothing to merge against: no verdict could ever judge the merge, so the best branch wins
         chosen = ranked[:1]
     else:
