@@ -9,8 +9,8 @@ from rl_pool.commands import cli, presets
 from rl_pool.config import MemberConfig, PoolConfig
 
 POOL_FIELDS = {f.name for f in fields(PoolConfig)}
-KNOWN = POOL_FIELDS | {f.name for f in fields(MemberConfig)} | {"learning_rates", "merged_batch_episodes",
-                                                                              "merged_merge"}
+KNOWN = POOL_FIELDS | {f.name for f in fields(MemberConfig)} | {"learning_rates"} | {
+    f"merged_{name}" for name in POOL_FIELDS}
 
 
 def _launch_config(name, tmp_path, *extra):
@@ -107,3 +107,29 @@ def test_merged_batch_only_where_a_preset_has_one():
         assert presets.batch_episodes(preset, 2, "adaptive") == preset.get("batch_episodes")
         assert presets.batch_episodes(preset, 8, "adaptive") == preset.get(
             "merged_batch_episodes", preset.get("batch_episodes")), name
+
+
+@pytest.mark.parametrize("extra,patience,revert", [
+    ((), 0, 0), (("--pool-size", "2"), 0, 0),  # 2 members: pool.json as before
+    (("--pool-size", "3"), 3, 20), (("--pool-size", "8"), 3, 20), (("--pool-size", "16"), 3, 20),
+    (("--pool-size", "8", "--merge", "none"), 0, 0), (("--pool-size", "8", "--merge", "mean"), 0, 0),
+    (("--pool-size", "8", "--parent-patience", "5"), 5, 20),  # given explicitly, each wins
+    (("--pool-size", "8", "--revert-after", "0"), 3, 0),
+    (("--pool-size", "8", "--selection", "branches"), 0, 20),  # no parent to be patient with
+])
+def test_halfcheetah_pools_that_merge_end_long_parent_runs(extra, patience, revert, tmp_path):
+    _, cfg = _launch_config("halfcheetah", tmp_path, *extra)
+    assert (cfg.parent_patience, cfg.revert_after) == (patience, revert)
+
+
+def test_merged_options_only_in_pools_that_merge_from_three():
+    preset = presets.PRESETS["halfcheetah"]
+    want = {"parent_patience": 3, "revert_after": 20}
+    assert presets.merged_options(preset, 8, "momentum", "parent") == want
+    assert presets.merged_options(preset, 8, "adaptive", "parent") == want
+    assert presets.merged_options(preset, 2, "momentum", "parent") == {}
+    assert presets.merged_options(preset, 8, "none", "parent") == {}
+    assert presets.merged_options(preset, 8, "momentum", "branches") == {"revert_after": 20}
+    for name, other in presets.PRESETS.items():
+        if not any(key.startswith("merged_") for key in other):
+            assert presets.merged_options(other, 8, "adaptive", "parent") == {}, name

@@ -66,15 +66,19 @@ def _apply_preset(args) -> dict:
             if getattr(args, "pool_size", None) is None:
                 args.pool_size = len(value)
             continue
-        if key in ("batch_episodes", "merged_batch_episodes", "merged_merge"):
+        if key == "batch_episodes" or key.startswith("merged_"):
             continue
         if getattr(args, key, None) is None:
             setattr(args, key, value)
     if getattr(args, "merge", None) is None:
         args.merge = presets.merge(chosen, getattr(args, "pool_size", None) or 1)
+    size, merge = getattr(args, "pool_size", None) or 1, getattr(args, "merge", None) or PoolConfig.merge
     if own_batch and getattr(args, "batch_episodes", None) is None:
-        args.batch_episodes = presets.batch_episodes(chosen, getattr(args, "pool_size", None) or 1,
-                                                     getattr(args, "merge", None) or PoolConfig.merge)
+        args.batch_episodes = presets.batch_episodes(chosen, size, merge)
+    selection = getattr(args, "selection", None) or PoolConfig.selection
+    for key, value in presets.merged_options(chosen, size, merge, selection).items():
+        if getattr(args, key, None) is None:
+            setattr(args, key, value)
     return chosen
 
 

@@ -4,8 +4,9 @@ A preset fills in options the command line leaves out: explicit options win.
 Pool-wide values go to ``pool.json`` like any option; ``learning_rates`` gives
 one rate per member (``launch``; ``train --member I`` takes the I-th) and
 ``pool_size`` its length; in pools of 3 or more members, ``merged_merge`` is the
-``--merge`` rule (:func:`merge`) and ``merged_batch_episodes`` replaces
-``batch_episodes`` when that rule merges with the rule of three (:func:`batch_episodes`).
+``--merge`` rule (:func:`merge`), and when that rule merges with the rule of three
+``merged_batch_episodes`` replaces ``batch_episodes`` (:func:`batch_episodes`) and the other
+``merged_<option>`` keys set ``<option>`` (:func:`merged_options`).
 """
 
 from __future__ import annotations
@@ -18,7 +19,8 @@ from rl_pool.protocol.selection import RULES_OF_THREE
 PRESETS: dict[str, dict] = {
     "swimmer": {"env": "Swimmer-v5", "learning_rates": [0.01, 0.1]},
     "halfcheetah": {"env": "HalfCheetah-v5", "policy": "mlp", "hidden": "64,64", "init_shape": 20.0,
-                    "learning_rates": [0.001, 0.003], "merged_batch_episodes": 5, "merged_merge": "momentum"},
+                    "learning_rates": [0.001, 0.003], "merged_batch_episodes": 5, "merged_merge": "momentum",
+                    "merged_parent_patience": 3, "merged_revert_after": 20},
     "hopper": {"env": "Hopper-v5", "reward_shift": 1.0, "selection": "branches", "revert_after": 20,
                "eval_episodes": 10, "train_episodes": 40, "batch_episodes": 20, "learning_rates": [0.01, 0.03]},
     "walker2d": {"env": "Walker2d-v5", "reward_shift": 1.0, "selection": "branches", "revert_after": 20,
@@ -77,6 +79,23 @@ def batch_episodes(preset: dict, pool_size: int, merge: str) -> int | None:
     if pool_size >= 3 and merge in RULES_OF_THREE and "merged_batch_episodes" in preset:
         return preset["merged_batch_episodes"]
     return preset.get("batch_episodes")
+
+
+#: The keys :func:`merged_options` handles itself; the rest of a preset's ``merged_`` keys are options.
+_MERGED_SPECIAL = ("merged_merge", "merged_batch_episodes")
+
+
+def merged_options(preset: dict, pool_size: int, merge: str, selection: str) -> dict:
+    """The options a preset sets only in a pool of ``pool_size`` >= 3 that merges from three branches
+    (``merge`` in the rule of three): its ``merged_<option>`` keys, by option name. Patience with the
+    parent (``merged_parent_patience``) goes only where the parent competes (``selection`` parent)."""
+    if pool_size < 3 or merge not in RULES_OF_THREE:
+        return {}
+    out = {key.removeprefix("merged_"): value for key, value in preset.items()
+           if key.startswith("merged_") and key not in _MERGED_SPECIAL}
+    if selection != "parent":
+        out.pop("parent_patience", None)
+    return out
 
 
 def member_learning_rate(preset: dict, member: int, pool_size: int) -> float | None:
