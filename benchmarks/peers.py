@@ -24,8 +24,8 @@ in ``--cores`` processes, one torch thread each, one episode per candidate. The 
 filter is a ``VecNormalize`` wrapper whose statistics AsyncEval merges from its workers; a
 checkpoint saves them beside the model (``model.save`` and ``VecNormalize.save``).
 
-rl-pool runs as ``rl-pool launch --preset TASK --pool-size CORES`` (options after ``--`` are
-added), stopped with SIGINT after the budget.
+rl-pool runs as ``rl-pool launch --preset TASK --pool-size CORES`` (``--members N``: N members
+sharing the cores; options after ``--`` are added), stopped with SIGINT after the budget.
 
 The sides run one after the other (``--order``), each with every core. Each clock starts when
 its side's process is started (imports, JIT and environment set-up count). At 1/4, 1/2 and
@@ -128,7 +128,9 @@ def parse(argv=None) -> argparse.Namespace:
                    help=f"an rl-pool preset or its env id: {', '.join(TASKS)} (default halfcheetah)")
     p.add_argument("--minutes", type=float, default=20.0, help="wall-clock budget of each side (default 20)")
     p.add_argument("--cores", type=int, default=2,
-                   help="ARS evaluation processes and rl-pool members (default 2)")
+                   help="ARS evaluation processes, and rl-pool members unless --members (default 2)")
+    p.add_argument("--members", type=int, default=None,
+                   help="rl-pool members (default: --cores; more members than cores share them)")
     p.add_argument("--episodes", type=int, default=20, help="fresh episodes per re-score (default 20)")
     p.add_argument("--eval-seed", type=int, default=1_000_000,
                    help="first re-score episode's reset seed; episode k uses seed+k (default 1000000)")
@@ -149,6 +151,8 @@ def parse(argv=None) -> argparse.Namespace:
     for name in ("cores", "episodes"):
         if getattr(a, name) < 1:
             raise Refused(f"--{name} must be >= 1, got {getattr(a, name)}")
+    if a.members is not None and a.members < 1:
+        raise Refused(f"--members must be >= 1, got {a.members}")
     if not a.poll > 0:
         raise Refused(f"--poll must be > 0, got {a.poll}")
     a.options = [o for o in a.options if o != "--"]
@@ -396,7 +400,7 @@ def run_rlpool(a, workdir: str) -> dict:
     seconds = a.minutes * 60
     marks = [(f, f * seconds) for f in FRACTIONS]
     cmd = [sys.executable, "-m", "rl_pool", "launch", "--preset", a.task, "--pool-dir", pool_dir,
-           "--pool-size", str(a.cores), "--seed", str(a.seed), "--iterations", "100000000", "--quiet",
+           "--pool-size", str(a.members or a.cores), "--seed", str(a.seed), "--iterations", "100000000", "--quiet",
            *a.options]
     log = os.path.join(d, "launch.log")
     checkpoints, latest, seen = [], None, None
@@ -524,6 +528,7 @@ def report(a, runs: dict, workdir: str) -> list[dict]:
                          "episodes": a.episodes, "eval_seed": a.eval_seed, "cores": a.cores, "seed": a.seed,
                          "budget_minutes": a.minutes,
                          "settings": run.get("settings") if side == "ars" else {"preset": a.task,
+                                                                                "members": a.members or a.cores,
                                                                                 "options": a.options},
                          "workdir": workdir})
     return rows
@@ -555,7 +560,8 @@ def main(argv=None) -> int:
     if os.path.isdir(os.path.join(workdir, "rl-pool", "pool")) and "rl-pool" in a.order:
         shutil.rmtree(os.path.join(workdir, "rl-pool", "pool"))  # a launch would resume it, not start anew
     how = "one after the other, " if len(a.order) > 1 else ""
-    print(f"# {a.env}: {', '.join(a.order)} {how}{a.minutes:g} min each on {a.cores} cores; "
+    members = f" (rl-pool: {a.members} members)" if a.members and a.members != a.cores else ""
+    print(f"# {a.env}: {', '.join(a.order)} {how}{a.minutes:g} min each on {a.cores} cores{members}; "
           f"re-scored on {a.episodes} fresh episodes (reset seeds {a.eval_seed}+k); runs in {workdir}",
           file=sys.stderr, flush=True)
     runs = {}

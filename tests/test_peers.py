@@ -48,6 +48,7 @@ def test_task_by_preset_or_env_id(peers, monkeypatch):
     assert (a.task, a.env, a.cores, a.episodes, a.order) == ("halfcheetah", "HalfCheetah-v5", 2, 20, ["ars", "rl-pool"])
     assert a.options == ["--eval-episodes", "5"]
     assert peers.parse(["--task", "walker2d"]).env == "Walker2d-v5"
+    assert (peers.parse([]).members, peers.parse(["--members", "8"]).members) == (None, 8)
 
 
 @pytest.mark.parametrize("argv, line", [
@@ -55,6 +56,7 @@ def test_task_by_preset_or_env_id(peers, monkeypatch):
     (["--minutes", "0"], "peers: --minutes must be > 0, got 0.0"),
     (["--cores", "0"], "peers: --cores must be >= 1, got 0"),
     (["--episodes", "-1"], "peers: --episodes must be >= 1, got -1"),
+    (["--members", "0"], "peers: --members must be >= 1, got 0"),
     (["--order", "ars,ppo"], "peers: --order takes ars, rl-pool or both"),
     (["--minutes", "soon"], "peers: argument --minutes: invalid float value: 'soon'"),
 ])
