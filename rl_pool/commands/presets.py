@@ -81,7 +81,7 @@ def batch_episodes(preset: dict, pool_size: int, merge: str) -> int | None:
     return preset.get("batch_episodes")
 
 
-#: The keys :func:`merged_options` handles itself; the rest of a preset's ``merged_`` keys are options.
+#: ``merged_`` keys with rules of their own (:func:`merge`, :func:`batch_episodes`); the others are options.
 _MERGED_SPECIAL = ("merged_merge", "merged_batch_episodes")
 
 
