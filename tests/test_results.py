@@ -30,7 +30,8 @@ def test_committed_history_matches_best():
     assert int(top["iteration"]) == best["iteration"] and float(top["eval_return"]) == best["eval_return"]
 
 
-HALFCHEETAH = os.path.join(os.path.dirname(RESULTS), "halfcheetah-v5")
+#: the 2-member HalfCheetah run of 2026-11-23, kept whole beside the 8-member result that replaced it
+HALFCHEETAH = os.path.join(os.path.dirname(RESULTS), "halfcheetah-v5", "screening", "two-members-seed0")
 
 
 def _versions_as_committed(task: str) -> bool:
@@ -45,10 +46,10 @@ def _versions_as_committed(task: str) -> bool:
 @pytest.mark.skipif(not threads.cpu_runs_v3(), reason="the portable level needs an x86-64-v3 CPU")
 @pytest.mark.skipif(not _versions_as_committed(HALFCHEETAH), reason="installed versions differ from the lock")
 def test_committed_re_score_replays_bit_for_bit_here():
-    """results/halfcheetah-v5/rescore.json was made on a machine without AVX-512. With numpy, OpenBLAS
-    and XLA held to x86-64-v3 code (rl_pool.threads), the real CLI gives the same returns to the
-    last bit on this machine, whatever its CPU has (without the cap an AVX-512 CPU gave other
-    returns for every one of the 50 episodes)."""
+    """results/halfcheetah-v5/screening/two-members-seed0/rescore.json was made on a machine without
+    AVX-512. With numpy, OpenBLAS and XLA held to x86-64-v3 code (rl_pool.threads), the real CLI
+    gives the same returns to the last bit on this machine, whatever its CPU has (without the cap
+    an AVX-512 CPU gave other returns for every one of the 50 episodes)."""
     from .conftest import rl_pool
 
     with open(os.path.join(HALFCHEETAH, "rescore.json")) as fh:
