@@ -213,6 +213,11 @@ def _norm(v):
     return json.dumps(v, sort_keys=True)
 
 
+def same_value(a, b) -> bool:
+    """Whether two option values are the same setting (as pool.json compares them)."""
+    return _norm(a) == _norm(b)
+
+
 def _show(v) -> str:
     return json.dumps(v) if isinstance(v, dict) else str(v)
 

@@ -252,3 +252,26 @@ def test_merge_momentum_without_the_momentum_merge_is_refused(tmp_path):
         assert proc.returncode == 2 and len(proc.stderr.strip().splitlines()) == 1, proc.stderr
         assert "--merge-momentum needs --merge momentum" in proc.stderr
         assert not (tmp_path / "p").exists()
+
+
+def test_a_pool_made_before_its_preset_changed_is_refused_with_how_to_resume_it(tmp_path):
+    """What a preset fills in and the pool has otherwise (here: an 8-member halfcheetah pool made
+    before the preset's patience) is refused in one line naming the preset and the setting to give."""
+    d = tmp_path / "p"
+    made = ["--preset", "halfcheetah", "--pool-size", 3, *SHORT, "--iterations", 1, "--quiet"]
+    rl_pool("train", "--pool-dir", d, *made, "--member", 0, "--parent-patience", 0, "--revert-after", 0,
+            "--barrier-timeout", 0.5, check=3)
+    before = _tree(d)
+    for command in (["train", "--member", 1], ["launch"]):
+        proc = rl_pool(*command, "--pool-dir", d, *made)
+        assert proc.returncode == 2 and len(proc.stderr.strip().splitlines()) == 1, proc.stderr
+        assert ("was made with --parent-patience 0, and --preset halfcheetah sets 3" in proc.stderr
+                and "give --parent-patience 0 to resume it" in proc.stderr), proc.stderr
+    assert _tree(d) == before
+
+
+def test_a_merge_without_its_members_is_described_as_a_merge():
+    from rl_pool.commands import status
+
+    assert status.describe({"winner": "merge", "merge": {"members": [3, 1]}}) == "a merge of members 3, 1"
+    assert status.describe({"winner": "merge", "member": None}) == "a merge"  # best.json's record

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
 from dataclasses import MISSING, fields
 
@@ -55,6 +56,7 @@ def _apply_preset(args) -> dict:
     from rl_pool.commands import presets
 
     chosen = presets.get(args.preset)
+    unset = {name for name, value in vars(args).items() if value is None}
     # A preset's gradient step size belongs to its episode count: with another --train-episodes
     # given and --batch-episodes not, the batch is the default min(10, E), not a size that may
     # not divide E.
@@ -79,7 +81,34 @@ def _apply_preset(args) -> dict:
     for key, value in presets.merged_options(chosen, size, merge, selection).items():
         if getattr(args, key, None) is None:
             setattr(args, key, value)
+    args.preset_set = {name for name in unset if getattr(args, name, None) is not None}
     return chosen
+
+
+def _check_preset_against_pool(args) -> None:
+    """A pool made with other values of what ``--preset`` filled in (a preset that changed since, or
+    one grown to another size) is refused in one line that says so and how to resume it; the
+    pool's own check would tell the user to drop an option they never gave."""
+    from rl_pool.config import PoolConfig, same_value
+    from rl_pool.errors import UsageError
+    from rl_pool.protocol import layout, pool
+
+    paths = layout.Paths(args.pool_dir)
+    names = sorted(set(getattr(args, "preset_set", ())) & {f.name for f in fields(PoolConfig)})
+    if not names or not os.path.exists(paths.pool_json):
+        return
+    try:
+        saved = pool.read_config(paths)
+    except UsageError:
+        return  # the member's own checks say what is wrong with the pool
+    for name in names:
+        want, have = getattr(args, name), getattr(saved, name)
+        if name == "max_episode_steps" or same_value(want, have):
+            continue
+        flag = "--" + name.replace("_", "-")
+        raise UsageError(f"pool {paths.root} was made with {flag} {have}, and --preset {args.preset} sets {want} "
+                         f"for this pool (the preset changed since, or the pool size differs): give {flag} "
+                         f"{have} to resume it, or use another --pool-dir")
 
 
 def _member_config(args, **override):
@@ -94,6 +123,7 @@ def cmd_train(args) -> int:
     from rl_pool.config import PoolConfig
 
     preset = _apply_preset(args)
+    _check_preset_against_pool(args)
     if args.learning_rate is None and preset:
         from rl_pool.commands.presets import member_learning_rate
 
@@ -109,6 +139,7 @@ def cmd_launch(args) -> int:
     if args.learning_rates and args.pool_size is None:
         args.pool_size = len(args.learning_rates)  # one rate per member: the list says how many
     preset = _apply_preset(args)
+    _check_preset_against_pool(args)
     lrs = args.learning_rates
     if lrs is None and args.learning_rate is None and preset.get("learning_rates"):
         from rl_pool.commands.presets import learning_rates

@@ -47,7 +47,8 @@ def describe(row: dict, origin: bool = True) -> str:
         return "the parent, carried (no valid deposit)" + made
     if win == "merge":
         members = (row.get("merge") or {}).get("members") or []
-        return "a merge of members " + ", ".join(str(m) for m in members)
+        # best.json names no members: its record says only that a merge won
+        return "a merge of members " + ", ".join(str(m) for m in members) if members else "a merge"
     if win == "fallback":
         return "the fallback (the merge scored lower)" + made
     return "the parent" + made
