@@ -25,6 +25,21 @@ class PeerTimeout(Exception):
     pass
 
 
+def _makedirs_shared(path: str, patience: float = 10.0) -> None:
+    """``os.makedirs(path, exist_ok=True)`` for a path the peer may be creating at the same moment
+    through another client: there a parent it just made can be missing for a moment (ENOENT), or
+    exist without showing as a directory yet (EEXIST); both pass, so try again for a while."""
+    deadline = time.monotonic() + patience
+    while True:
+        try:
+            os.makedirs(path, exist_ok=True)
+            return
+        except (FileNotFoundError, FileExistsError):
+            if time.monotonic() > deadline:
+                raise
+            time.sleep(0.05)
+
+
 class _Session:
     """Two doctor runs meeting in ``DIR/.rl-pool-doctor/SESSION``."""
 
@@ -33,7 +48,7 @@ class _Session:
         self.me = fsutil.writer_token(6)
         self.timeout = timeout
         self.peer: str | None = None
-        os.makedirs(self.root, exist_ok=True)
+        _makedirs_shared(self.root)
 
     def put(self, name: str, obj) -> None:
         fsutil.atomic_write(os.path.join(self.root, name), fsutil.dumps(obj), sync_dir=False)
@@ -143,7 +158,7 @@ def peer_race(d: str, rounds: int = 50, session: str = "default", timeout: float
         peer = s.meet()
         # A fresh directory per pair: names left by an earlier, interrupted session never count.
         race = os.path.join(s.root, "race-" + "-".join(sorted((s.me, peer))))
-        os.makedirs(race, exist_ok=True)
+        _makedirs_shared(race)
         for k in range(rounds):  # each run's private sources, made before the race
             fsutil.atomic_write(os.path.join(race, f".src-{s.me}-{k:04d}"), s.me.encode(), sync_dir=False)
             prop = os.path.join(race, f".prop-{s.me}-{k:04d}")
