@@ -151,7 +151,9 @@ def parse(argv=None) -> argparse.Namespace:
     for name in ("cores", "episodes"):
         if getattr(a, name) < 1:
             raise Refused(f"--{name} must be >= 1, got {getattr(a, name)}")
-    if a.members is not None and a.members < 1:
+    if a.members is None:
+        a.members = a.cores
+    elif a.members < 1:
         raise Refused(f"--members must be >= 1, got {a.members}")
     if not a.poll > 0:
         raise Refused(f"--poll must be > 0, got {a.poll}")
@@ -400,7 +402,7 @@ def run_rlpool(a, workdir: str) -> dict:
     seconds = a.minutes * 60
     marks = [(f, f * seconds) for f in FRACTIONS]
     cmd = [sys.executable, "-m", "rl_pool", "launch", "--preset", a.task, "--pool-dir", pool_dir,
-           "--pool-size", str(a.members or a.cores), "--seed", str(a.seed), "--iterations", "100000000", "--quiet",
+           "--pool-size", str(a.members), "--seed", str(a.seed), "--iterations", "100000000", "--quiet",
            *a.options]
     log = os.path.join(d, "launch.log")
     checkpoints, latest, seen = [], None, None
@@ -528,7 +530,7 @@ def report(a, runs: dict, workdir: str) -> list[dict]:
                          "episodes": a.episodes, "eval_seed": a.eval_seed, "cores": a.cores, "seed": a.seed,
                          "budget_minutes": a.minutes,
                          "settings": run.get("settings") if side == "ars" else {"preset": a.task,
-                                                                                "members": a.members or a.cores,
+                                                                                "members": a.members,
                                                                                 "options": a.options},
                          "workdir": workdir})
     return rows
@@ -560,7 +562,7 @@ def main(argv=None) -> int:
     if os.path.isdir(os.path.join(workdir, "rl-pool", "pool")) and "rl-pool" in a.order:
         shutil.rmtree(os.path.join(workdir, "rl-pool", "pool"))  # a launch would resume it, not start anew
     how = "one after the other, " if len(a.order) > 1 else ""
-    members = f" (rl-pool: {a.members} members)" if a.members and a.members != a.cores else ""
+    members = f" (rl-pool: {a.members} members)" if a.members != a.cores else ""
     print(f"# {a.env}: {', '.join(a.order)} {how}{a.minutes:g} min each on {a.cores} cores{members}; "
           f"re-scored on {a.episodes} fresh episodes (reset seeds {a.eval_seed}+k); runs in {workdir}",
           file=sys.stderr, flush=True)

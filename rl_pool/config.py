@@ -175,11 +175,13 @@ class PoolConfig:
         return cls(**{k: d.get(k, added.get(k)) for k in names})
 
     @classmethod
-    def merged(cls, requested: dict, saved: PoolConfig | None, where: str = "the pool") -> PoolConfig:
+    def merged(cls, requested: dict, saved: PoolConfig | None, where: str = "the pool",
+               preset: str | None = None) -> PoolConfig:
         """Combine explicitly requested values with a saved pool config.
 
         ``requested`` maps field names to values the user set (unset fields are
-        absent). Against a saved config every requested value must agree.
+        absent). Against a saved config every requested value must agree. ``preset``: the
+        values were filled in by that ``--preset``, and a refusal says so and how to resume.
         """
         if saved is None:
             base = {f.name: (f.default if f.default is not MISSING else f.default_factory())
@@ -195,6 +197,11 @@ class PoolConfig:
                 continue  # 0 means "the env's limit", resolved when the pool was made
             if _norm(value) != _norm(have):
                 flag = "--" + name.replace("_", "-")
+                if preset:
+                    raise UsageError(
+                        f"{where} was made with {flag} {_show(have)}, and --preset {preset} sets {_show(value)} "
+                        f"for this pool (the preset changed since, or the pool size differs): give {flag} "
+                        f"{_show(have)} to resume it, or use another --pool-dir")
                 raise UsageError(
                     f"{where} was made with {flag} {_show(have)}, this run asks for {_show(value)} "
                     "(drop the option to use the pool's, or use another --pool-dir)")
@@ -211,11 +218,6 @@ class OldProtocol(ValueError):
 
 def _norm(v):
     return json.dumps(v, sort_keys=True)
-
-
-def same_value(a, b) -> bool:
-    """Whether two option values are the same setting (as pool.json compares them)."""
-    return _norm(a) == _norm(b)
 
 
 def _show(v) -> str:

@@ -48,7 +48,7 @@ def test_task_by_preset_or_env_id(peers, monkeypatch):
     assert (a.task, a.env, a.cores, a.episodes, a.order) == ("halfcheetah", "HalfCheetah-v5", 2, 20, ["ars", "rl-pool"])
     assert a.options == ["--eval-episodes", "5"]
     assert peers.parse(["--task", "walker2d"]).env == "Walker2d-v5"
-    assert (peers.parse([]).members, peers.parse(["--members", "8"]).members) == (None, 8)
+    assert (peers.parse([]).members, peers.parse(["--members", "8"]).members) == (2, 8)  # default: --cores
 
 
 @pytest.mark.parametrize("argv, line", [

@@ -89,26 +89,20 @@ def _check_preset_against_pool(args) -> None:
     """A pool made with other values of what ``--preset`` filled in (a preset that changed since, or
     one grown to another size) is refused in one line that says so and how to resume it; the
     pool's own check would tell the user to drop an option they never gave."""
-    from rl_pool.config import PoolConfig, same_value
+    from rl_pool.config import PoolConfig
     from rl_pool.errors import UsageError
     from rl_pool.protocol import layout, pool
 
     paths = layout.Paths(args.pool_dir)
-    names = sorted(set(getattr(args, "preset_set", ())) & {f.name for f in fields(PoolConfig)})
+    names = set(getattr(args, "preset_set", ())) & {f.name for f in fields(PoolConfig)}
     if not names or not os.path.exists(paths.pool_json):
         return
     try:
         saved = pool.read_config(paths)
     except UsageError:
         return  # the member's own checks say what is wrong with the pool
-    for name in names:
-        want, have = getattr(args, name), getattr(saved, name)
-        if name == "max_episode_steps" or same_value(want, have):
-            continue
-        flag = "--" + name.replace("_", "-")
-        raise UsageError(f"pool {paths.root} was made with {flag} {have}, and --preset {args.preset} sets {want} "
-                         f"for this pool (the preset changed since, or the pool size differs): give {flag} "
-                         f"{have} to resume it, or use another --pool-dir")
+    PoolConfig.merged({name: getattr(args, name) for name in sorted(names)}, saved, where=f"pool {paths.root}",
+                      preset=args.preset)
 
 
 def _member_config(args, **override):
