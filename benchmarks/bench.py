@@ -1,5 +1,5 @@
 """Benchmarks that print figures (not timed tests):
-``python benchmarks/bench.py {throughput,scaling,evaluate,protocol,signing,simd}`` (outside the
+``python benchmarks/bench.py {throughput,scaling,evaluate,protocol,profile,signing,simd}`` (outside the
 installed package: it needs rl-pool installed, e.g. by ``shell/setup.sh``).
 
 All figures of one run come from the same machine at the same time; compare
@@ -377,6 +377,83 @@ def _member(args) -> None:
     sys.exit(cli_main(rest))
 
 
+def _profiled_member(args) -> None:
+    """One member under cProfile, CPU time only (``bench.py _profiled OUT WARMUP -- train ...``):
+    the profiler starts when the member's deposit marker of iteration WARMUP is renamed into place
+    (so start-up and JIT are left out) and its stats go to OUT at exit, with the count of
+    iterations it covered."""
+    import atexit
+    import cProfile
+
+    rest = args.rest[1:] if args.rest[:1] == ["--"] else args.rest
+    marker = f"{os.sep}member-{int(rest[rest.index('--member') + 1]):03d}.json"
+    prof = cProfile.Profile(time.process_time)
+    state = {"marks": 0, "from": None}
+    real_replace = os.replace
+
+    def replace(src, dst, *a, **kw):
+        real_replace(src, dst, *a, **kw)
+        if isinstance(dst, str) and dst.endswith(marker) and f"{os.sep}iterations{os.sep}" in dst:
+            state["marks"] += 1
+            if state["marks"] == args.warmup:
+                state["from"] = state["marks"]
+                prof.enable()
+
+    os.replace = replace
+
+    def dump():
+        prof.disable()
+        prof.dump_stats(args.out)
+        with open(args.out + ".json", "w") as fh:
+            json.dump({"iterations": state["marks"] - state["from"] if state["from"] else 0}, fh)
+
+    atexit.register(dump)
+    from rl_pool.commands.cli import main as cli_main
+
+    sys.exit(cli_main(rest))
+
+
+def profile(args) -> None:
+    """Where a member's CPU goes in a pool with trivial work: every member under cProfile (CPU
+    time), the functions with the most CPU per member and iteration over all members."""
+    import pstats
+
+    base = tempfile.mkdtemp(prefix="rl-pool-profile-")
+    extra = ["--env", args.env, "--max-episode-steps", "10", "--train-episodes", "1", "--batch-episodes", "1",
+             "--eval-episodes", "1", "--heartbeat-timeout", "600", "--barrier-timeout", "600",
+             "--merge", args.merge]
+    n = args.members
+    try:
+        root = os.path.join(base, "pool")
+        _run_members(n, [root], args.iterations, extra,
+                     lambda m: [sys.executable, os.path.abspath(__file__), "_profiled",
+                                os.path.join(base, f"{m}.prof"), str(args.warmup), "--"], args.learning_rate)
+        from rl_pool.protocol import deposits, layout
+
+        paths = layout.Paths(root)
+        sels = [deposits.read_selected(paths, i) for i in range(args.warmup + 1, args.iterations + 1)]
+        merged = sum(s.get("winner") == "merge" for s in sels)
+        covered = 0
+        for m in range(n):
+            with open(os.path.join(base, f"{m}.prof.json")) as fh:
+                covered += json.load(fh)["iterations"]
+        stats = pstats.Stats(*(os.path.join(base, f"{m}.prof") for m in range(n)))
+        total = sum(v[2] for v in stats.stats.values())  # tottime: each function's own CPU
+        per = 1000 / max(covered, 1)
+        print(f"{n} members, --merge {args.merge}, learning rate {args.learning_rate}, {args.env} with 10-step "
+              f"episodes; iterations {args.warmup + 1}..{args.iterations} profiled ({covered} member-iterations, "
+              f"{merged} of {len(sels)} selections merged)")
+        print(f"CPU per member and iteration, all profiled functions: {total * per:.2f} ms")
+        for key, title in (("tottime", "own CPU"), ("cumulative", "CPU including callees")):
+            print(f"\ntop {args.top} by {title}, ms per member and iteration:")
+            rows = sorted(stats.stats.items(), key=lambda kv: kv[1][2 if key == "tottime" else 3], reverse=True)
+            for (file, line, func), (_cc, calls, tt, ct, _callers) in rows[:args.top]:
+                where = f"{os.path.relpath(file) if file.startswith(os.sep) else file}:{line}({func})"
+                print(f"{(tt if key == 'tottime' else ct) * per:8.3f}  {calls / max(covered, 1):7.1f} calls  {where}")
+    finally:
+        shutil.rmtree(base, ignore_errors=True)
+
+
 KINDS = ("open_read", "open_write", "open_missing", "open_dir", "listing", "stat", "rename", "fsync",
          "mkdir", "unlink")
 
@@ -588,6 +665,16 @@ def main(argv=None) -> None:
                          "the rules that merge do merge; see the merged column)")
     pr.add_argument("--json", action="store_true", help="also print the rows as one JSON list")
     pr.set_defaults(func=protocol)
+    pf = sub.add_parser("profile", help="where a member's CPU goes in a pool with trivial work (cProfile)")
+    pf.add_argument("--members", type=int, default=16)
+    pf.add_argument("--iterations", type=int, default=40)
+    pf.add_argument("--warmup", type=int, default=5, help="first iterations not profiled (start-up, JIT)")
+    pf.add_argument("--env", default="Swimmer-v5")
+    pf.add_argument("--merge", default="momentum", help="the pool's --merge (default momentum)")
+    pf.add_argument("--learning-rate", type=float, default=0.01,
+                    help="every member's rate (default 0.01: Swimmer's pools then merge in most iterations)")
+    pf.add_argument("--top", type=int, default=25, help="functions listed per table")
+    pf.set_defaults(func=profile)
     sm = sub.add_parser("simd", help="member throughput with the portable SIMD level vs all of the CPU")
     sm.add_argument("--cases", default="Swimmer-v5:linear,HalfCheetah-v5:linear,HalfCheetah-v5:mlp",
                     help="ENV:POLICY,... (default Swimmer linear, HalfCheetah linear and mlp)")
@@ -601,6 +688,11 @@ def main(argv=None) -> None:
     r.add_argument("hidden")
     r.add_argument("steps", type=int)
     r.set_defaults(func=_rate)
+    pm = sub.add_parser("_profiled")  # internal: one member under cProfile
+    pm.add_argument("out")
+    pm.add_argument("warmup", type=int)
+    pm.add_argument("rest", nargs=argparse.REMAINDER)
+    pm.set_defaults(func=_profiled_member)
     m = sub.add_parser("_member")  # internal: one member under the filesystem-call counter
     m.add_argument("out")
     m.add_argument("rest", nargs=argparse.REMAINDER)
