@@ -3,6 +3,7 @@
 import io
 import json
 import os
+import zipfile
 
 import numpy as np
 import pytest
@@ -108,6 +109,44 @@ def _npy(arr):
 def test_inconsistent_files_are_refused(change, match):
     with pytest.raises(AgentFileError, match=match):
         Agent.from_bytes(_npz(**(_arrays(agent()) | change)))
+
+
+def test_arrays_written_otherwise_load_to_the_same_agent():
+    # to_bytes writes little-endian C-ordered float64 arrays, read straight from the bytes; big-endian,
+    # Fortran-ordered and float32 arrays go through numpy's own reader
+    a = agent(3)
+    a = a.evolve(opt_m={"w": a.params["w"] * 2}, opt_v={"w": a.params["w"] ** 2}, opt_t=7.0)
+    arrays = _arrays(a)
+
+    def written(convert):
+        return Agent.from_bytes(_npz(**{k: v if k == "meta" else convert(v) for k, v in arrays.items()}))
+
+    for b in (written(lambda v: v.astype(">f8")), written(lambda v: np.asfortranarray(v) if v.ndim else v)):
+        for x, y in [(a.params["w"], b.params["w"]), (a.opt_m["w"], b.opt_m["w"]), (a.opt_v["w"], b.opt_v["w"]),
+                     (a.norm.mean, b.norm.mean), (a.norm.m2, b.norm.m2)]:
+            np.testing.assert_array_equal(x, y)
+        assert (b.meta, b.norm.count, b.opt_t) == (a.meta, a.norm.count, a.opt_t)
+    single = written(lambda v: v.astype("<f4"))
+    np.testing.assert_array_equal(single.params["w"], a.params["w"].astype(np.float32).astype(np.float64))
+
+
+def test_a_float64_header_over_other_lengths_of_data_goes_to_numpys_reader():
+    # the bytes are used directly only when their length is exactly the header's shape; else numpy
+    # reads them as it always did: too few are refused, bytes past the array are ignored
+    a = agent()
+    arrays = _arrays(a)
+
+    def with_param(raw):
+        buf = io.BytesIO()
+        with zipfile.ZipFile(buf, "w") as zf:
+            for k, v in arrays.items():
+                zf.writestr(k + ".npy", raw if k == "param.w" else _npy(v))
+        return Agent.from_bytes(buf.getvalue())
+
+    data = _npy(arrays["param.w"])
+    with pytest.raises(AgentFileError, match="unreadable"):
+        with_param(data[:-8])
+    np.testing.assert_array_equal(with_param(data + b"\0" * 8).params["w"], a.params["w"])
 
 
 def test_garbage_and_missing_files(tmp_path):

@@ -8,6 +8,7 @@ env id and kwargs, episode length, action bounds, policy shape, format version.
 
 from __future__ import annotations
 
+import functools
 import io
 import json
 import math
@@ -51,6 +52,26 @@ def max_file_bytes(meta: AgentMeta) -> int:
     shapes = array_shapes(meta)
     arrays = sum(8 * int(np.prod(s)) + NPY_HEADER_MAX + ZIP_ENTRY_MAX for s in shapes.values())
     return arrays + META_MAX_BYTES + NPY_HEADER_MAX + ZIP_ENTRY_MAX + 4096
+
+
+@functools.lru_cache(maxsize=256)
+def _float64_header(shape: tuple[int, ...]) -> bytes:
+    """The ``.npy`` header this numpy writes for a C-ordered little-endian float64 array of ``shape``."""
+    buf = io.BytesIO()
+    np.lib.format.write_array(buf, np.zeros(shape, dtype="<f8"), allow_pickle=False)
+    return buf.getvalue()[:buf.tell() - 8 * math.prod(shape)]
+
+
+def _read_float64(z, key: str, shape: tuple[int, ...]) -> np.ndarray:
+    """Array ``key`` of an open ``.npz``. What ``to_bytes`` writes (a header equal, byte for byte,
+    to this numpy's for a float64 array of ``shape``, then exactly its data) is read straight from
+    the bytes; anything else (another dtype, byte order or header) goes through numpy's reader,
+    whose header parser costs several times more. Either way the caller checks dtype and shape."""
+    raw = z.zip.read(key + ".npy")
+    head = _float64_header(shape)
+    if len(raw) == len(head) + 8 * math.prod(shape) and raw.startswith(head):
+        return np.frombuffer(raw, dtype="<f8", offset=len(head)).reshape(shape)
+    return z[key]
 
 
 @dataclass(frozen=True)
@@ -235,7 +256,7 @@ class Agent:
                     size = z.zip.getinfo(key + ".npy").file_size
                     if size > 8 * int(np.prod(shape)) + NPY_HEADER_MAX:
                         raise AgentFileError(f"{source}: array {key!r} is larger than its shape {shape} allows")
-                arrays = {k: z[k] for k in expect}
+                arrays = {k: _read_float64(z, k, shape) for k, shape in expect.items()}
         except AgentFileError:
             raise
         except Exception as exc:  # zip errors, object arrays refused, truncation, ...
