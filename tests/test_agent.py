@@ -198,6 +198,24 @@ def test_hostile_sizes_are_refused_before_allocation():
         Agent.from_bytes(fake.getvalue())
 
 
+def test_a_meta_that_claims_huge_shapes_over_small_arrays_allocates_nothing_of_that_size():
+    import tracemalloc
+
+    arrays = _arrays(agent())
+    meta = json.loads(str(arrays["meta"]))
+    act = 1000  # with 100 000 observations: a (100 001, 2000) float64 matrix claimed, 1.6 GB
+    meta |= {"obs_dim": 100_000, "act_dim": act, "action_low": [-1.0] * act, "action_high": [1.0] * act}
+    data = _npz(**(arrays | {"meta": np.array(json.dumps(meta))}))
+    tracemalloc.start()
+    try:
+        with pytest.raises(AgentFileError, match="shape"):
+            Agent.from_bytes(data)
+        peak = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    assert peak < 20_000_000
+
+
 OLD_FORMAT = os.path.join(os.path.dirname(__file__), "..", "results", "swimmer-v5", "best.npz")
 
 

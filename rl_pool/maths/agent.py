@@ -56,10 +56,11 @@ def max_file_bytes(meta: AgentMeta) -> int:
 
 @functools.lru_cache(maxsize=256)
 def _float64_header(shape: tuple[int, ...]) -> bytes:
-    """The ``.npy`` header this numpy writes for a C-ordered little-endian float64 array of ``shape``."""
+    """The ``.npy`` header this numpy writes for a C-ordered little-endian float64 array of
+    ``shape`` (built from the shape alone: no array of that size is made)."""
     buf = io.BytesIO()
-    np.lib.format.write_array(buf, np.zeros(shape, dtype="<f8"), allow_pickle=False)
-    return buf.getvalue()[:buf.tell() - 8 * math.prod(shape)]
+    np.lib.format.write_array_header_1_0(buf, {"descr": "<f8", "fortran_order": False, "shape": shape})
+    return buf.getvalue()
 
 
 def _read_float64(z, key: str, shape: tuple[int, ...]) -> np.ndarray:
