@@ -379,14 +379,15 @@ def _member(args) -> None:
 
 def _profiled_member(args) -> None:
     """One member under cProfile, CPU time only (``bench.py _profiled OUT WARMUP -- train ...``):
-    the profiler starts when the member's deposit marker of iteration WARMUP is renamed into place
-    (so start-up and JIT are left out) and its stats go to OUT at exit, with the count of
-    iterations it covered."""
+    the profiler runs from the member's deposit of iteration WARMUP to its last deposit (the
+    marker renamed into place), so start-up, JIT and shutdown are left out, and whole
+    iterations, deposit to deposit, are counted; its stats go to OUT at exit."""
     import atexit
     import cProfile
 
     rest = args.rest[1:] if args.rest[:1] == ["--"] else args.rest
     marker = f"{os.sep}member-{int(rest[rest.index('--member') + 1]):03d}.json"
+    last = int(rest[rest.index("--iterations") + 1])
     prof = cProfile.Profile(time.process_time)
     state = {"marks": 0, "from": None}
     real_replace = os.replace
@@ -398,6 +399,8 @@ def _profiled_member(args) -> None:
             if state["marks"] == args.warmup:
                 state["from"] = state["marks"]
                 prof.enable()
+            elif state["marks"] == last:
+                prof.disable()
 
     os.replace = replace
 
@@ -418,6 +421,8 @@ def profile(args) -> None:
     time), the functions with the most CPU per member and iteration over all members."""
     import pstats
 
+    if not 1 <= args.warmup <= args.iterations - 1:
+        raise SystemExit("bench profile: need 1 <= --warmup <= --iterations - 1")
     base = tempfile.mkdtemp(prefix="rl-pool-profile-")
     extra = ["--env", args.env, "--max-episode-steps", "10", "--train-episodes", "1", "--batch-episodes", "1",
              "--eval-episodes", "1", "--heartbeat-timeout", "600", "--barrier-timeout", "600",
@@ -432,7 +437,7 @@ def profile(args) -> None:
 
         paths = layout.Paths(root)
         sels = [deposits.read_selected(paths, i) for i in range(args.warmup + 1, args.iterations + 1)]
-        merged = sum(s.get("winner") == "merge" for s in sels)
+        merged = sum((s or {}).get("winner") == "merge" for s in sels)
         covered = 0
         for m in range(n):
             with open(os.path.join(base, f"{m}.prof.json")) as fh:

@@ -13,6 +13,7 @@ import io
 import json
 import math
 import os
+import zipfile
 from dataclasses import dataclass, field, replace
 
 import numpy as np
@@ -64,15 +65,23 @@ def _float64_header(shape: tuple[int, ...]) -> bytes:
 
 
 def _read_float64(z, key: str, shape: tuple[int, ...]) -> np.ndarray:
-    """Array ``key`` of an open ``.npz``. What ``to_bytes`` writes (a header equal, byte for byte,
-    to this numpy's for a float64 array of ``shape``, then exactly its data) is read straight from
-    the bytes; anything else (another dtype, byte order or header) goes through numpy's reader,
-    whose header parser costs several times more. Either way the caller checks dtype and shape."""
-    raw = z.zip.read(key + ".npy")
+    """Array ``key`` of an open ``.npz``. What ``to_bytes`` writes (a stored, uncompressed member:
+    a header equal, byte for byte, to this numpy's for a float64 array of ``shape``, then exactly
+    its data) is read straight from the bytes; anything else (compressed, another dtype, byte order
+    or header) goes through numpy's reader, whose header parser costs several times more. Either
+    way the caller checks dtype, shape and values."""
+    info = z.zip.getinfo(key + ".npy")
     head = _float64_header(shape)
-    if len(raw) == len(head) + 8 * math.prod(shape) and raw.startswith(head):
-        return np.frombuffer(raw, dtype="<f8", offset=len(head)).reshape(shape)
-    return z[key]
+    # Stored members only: their bytes are the file's own, so reading one allocates no more than
+    # the file holds (a compressed member would be inflated before its size is cut to the directory's).
+    if info.compress_type == zipfile.ZIP_STORED and info.file_size == len(head) + 8 * math.prod(shape):
+        raw = z.zip.read(info)
+        if raw.startswith(head):
+            return np.frombuffer(raw, dtype="<f8", offset=len(head)).reshape(shape)
+    arr = z[key]
+    if not isinstance(arr, np.ndarray):  # numpy hands back the bytes of a member that is not .npy
+        raise ValueError(f"{key}.npy is not a .npy array")
+    return arr
 
 
 @dataclass(frozen=True)
