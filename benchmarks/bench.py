@@ -260,6 +260,24 @@ def evaluation(args) -> None:
 
 
 # ---------------------------------------------------------------- protocol cost
+def _deposit_marker(me: int):
+    """``is_deposit(path)``: whether a rename to ``path`` is member ``me``'s deposit marker (its
+    metrics file in an iteration directory), which ends one iteration of that member."""
+    marker = f"{os.sep}member-{me:03d}.json"
+    return lambda path: path.endswith(marker) and f"{os.sep}iterations{os.sep}" in path
+
+
+def _member_argv(args) -> list[str]:
+    """The ``train`` command line an internal member subcommand was given (after ``--``)."""
+    return args.rest[1:] if args.rest[:1] == ["--"] else args.rest
+
+
+def _trivial_work(env: str) -> list[str]:
+    """Pool options for trivial work: 10-step episodes, one training and one evaluation episode."""
+    return ["--env", env, "--max-episode-steps", "10", "--train-episodes", "1", "--batch-episodes", "1",
+            "--eval-episodes", "1", "--heartbeat-timeout", "600", "--barrier-timeout", "600"]
+
+
 class _FsCounter:
     """Counts one member's filesystem calls on the pool directory (nothing else), without strace.
 
@@ -273,7 +291,7 @@ class _FsCounter:
 
     def __init__(self, root: str, me: int):
         self.roots = {os.path.abspath(root) + os.sep, os.path.realpath(root) + os.sep}
-        self.marker = f"{os.sep}member-{me:03d}.json"
+        self.is_deposit = _deposit_marker(me)
         self.count: collections.Counter = collections.Counter()
         self.marks: list = []
         self.fds: dict[int, str] = {}
@@ -335,8 +353,7 @@ class _FsCounter:
                 if any(c.where(a[k] if k < len(a) else ".", kw.get("dir_fd", kw.get("src_dir_fd")))
                        for k in range(paths)):
                     c.count[key] += 1
-                    if name == "replace" and len(a) > 1 and os.fsdecode(a[1]).endswith(c.marker) \
-                            and f"{os.sep}iterations{os.sep}" in os.fsdecode(a[1]):
+                    if name == "replace" and len(a) > 1 and c.is_deposit(os.fsdecode(a[1])):
                         out = fn(*a, **kw)
                         c.marks.append((time.monotonic(), dict(c.count), time.process_time()))
                         return out
@@ -360,7 +377,7 @@ def _member(args) -> None:
     """One member under :class:`_FsCounter` (``python benchmarks/bench.py _member OUT -- train ...``)."""
     import atexit
 
-    rest = args.rest[1:] if args.rest[:1] == ["--"] else args.rest
+    rest = _member_argv(args)
     root = rest[rest.index("--pool-dir") + 1]
     me = int(rest[rest.index("--member") + 1])
     counter = _FsCounter(root, me)
@@ -385,21 +402,20 @@ def _profiled_member(args) -> None:
     import atexit
     import cProfile
 
-    rest = args.rest[1:] if args.rest[:1] == ["--"] else args.rest
-    marker = f"{os.sep}member-{int(rest[rest.index('--member') + 1]):03d}.json"
+    rest = _member_argv(args)
+    is_deposit = _deposit_marker(int(rest[rest.index("--member") + 1]))
     last = int(rest[rest.index("--iterations") + 1])
     prof = cProfile.Profile(time.process_time)
-    state = {"marks": 0, "from": None}
+    deposits = [0]
     real_replace = os.replace
 
     def replace(src, dst, *a, **kw):
         real_replace(src, dst, *a, **kw)
-        if isinstance(dst, str) and dst.endswith(marker) and f"{os.sep}iterations{os.sep}" in dst:
-            state["marks"] += 1
-            if state["marks"] == args.warmup:
-                state["from"] = state["marks"]
+        if isinstance(dst, str) and is_deposit(dst):
+            deposits[0] += 1
+            if deposits[0] == args.warmup:
                 prof.enable()
-            elif state["marks"] == last:
+            elif deposits[0] == last:
                 prof.disable()
 
     os.replace = replace
@@ -407,8 +423,8 @@ def _profiled_member(args) -> None:
     def dump():
         prof.disable()
         prof.dump_stats(args.out)
-        with open(args.out + ".json", "w") as fh:
-            json.dump({"iterations": state["marks"] - state["from"] if state["from"] else 0}, fh)
+        with open(args.out + ".json", "w") as fh:  # the iterations profiled, deposit to deposit
+            json.dump({"iterations": max(0, min(deposits[0], last) - args.warmup)}, fh)
 
     atexit.register(dump)
     from rl_pool.commands.cli import main as cli_main
@@ -424,9 +440,7 @@ def profile(args) -> None:
     if not 1 <= args.warmup <= args.iterations - 1:
         raise SystemExit("bench profile: need 1 <= --warmup <= --iterations - 1")
     base = tempfile.mkdtemp(prefix="rl-pool-profile-")
-    extra = ["--env", args.env, "--max-episode-steps", "10", "--train-episodes", "1", "--batch-episodes", "1",
-             "--eval-episodes", "1", "--heartbeat-timeout", "600", "--barrier-timeout", "600",
-             "--merge", args.merge]
+    extra = [*_trivial_work(args.env), "--merge", args.merge]
     n = args.members
     try:
         root = os.path.join(base, "pool")
@@ -536,9 +550,7 @@ def protocol(args) -> None:
         raise SystemExit("bench protocol: need 1 <= --warmup <= --iterations - 2")
     base = None if args.dir else tempfile.mkdtemp(prefix="rl-pool-bench-")
     dirs = args.dir or [base]
-    extra = ["--env", args.env, "--max-episode-steps", "10", "--train-episodes", "1", "--batch-episodes", "1",
-             "--eval-episodes", "1", "--heartbeat-timeout", "600", "--barrier-timeout", "600",
-             "--selection", args.selection]
+    extra = [*_trivial_work(args.env), "--selection", args.selection]
     parent = " + the parent's re-score (3 members, all in pools of up to 3)" if args.selection == "parent" else ""
     print(f"env {args.env}, 10-step episodes, 1 training + 1 evaluation episode{parent} per member and iteration, "
           f"{args.iterations} iterations (first {args.warmup} not counted); pool on {', '.join(dirs)}")
