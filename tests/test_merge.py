@@ -567,3 +567,17 @@ def test_merge_steps_benchmark_prints_the_cosine_of_consecutive_merges(tmp_path,
     assert [int(r[0]) for r in rows] == [1, 2]
     assert float(rows[0][1]) == pytest.approx(np.linalg.norm(s1), abs=1e-4)
     assert float(rows[0][2]) == pytest.approx(s1 @ s2 / np.linalg.norm(s1) / np.linalg.norm(s2), abs=1e-3)
+
+    # --branches: inside iteration 1 (iteration 2 lacks an agent, so it is left out)
+    os.remove(paths.deposit_npz(2, 1))
+    steps = [mod.flat(deposits.read_deposit(paths, 1, m)[1]) - a[0] for m in range(3)]
+    lengths = [float(np.sqrt(sum(x * x for x in s))) for s in steps]
+    mean = [sum(col) / 3 for col in zip(*steps, strict=True)]
+    pairs = [(0, 1), (0, 2), (1, 2)]
+    cosine = sum(float(steps[j] @ steps[k]) / (lengths[j] * lengths[k]) for j, k in pairs) / 3
+    capsys.readouterr()
+    assert mod.main([str(paths.root), "--branches"]) == 0
+    rows = [line.split() for line in capsys.readouterr().out.splitlines()[1:]]
+    assert len(rows) == 1 and rows[0][:2] == ["1", "3"]
+    branch, length = sum(lengths) / 3, float(np.sqrt(sum(x * x for x in mean)))
+    assert [float(x) for x in rows[0][2:]] == pytest.approx([branch, length, length / branch, cosine], abs=2e-3)
