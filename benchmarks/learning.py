@@ -105,16 +105,32 @@ def main(argv=None) -> int:
                 with open(args.out, "a") as fh:
                     fh.write(json.dumps(r | {"options": options, "threshold": args.threshold}) + "\n")
     print(f"\n{'N':>3} {'median iterations':>18} {'fewer than N=' + str(sizes[0]):>16} {'median env steps':>17}")
-    base = None
+    for row in summary(results, sizes, args.max_iterations):
+        print(f"{row[0]:>3} {row[1]:>18} {row[2]:>16} {row[3]:>17}")
+    return 0
+
+
+def summary(results: list[dict], sizes: list[int], max_iterations: int) -> list[tuple[int, str, str, str]]:
+    """Per pool size: the median iterations and env steps to the threshold over its seeds (a pool
+    that did not get there counts as more than any that did), and how many times fewer iterations
+    than the first size needed. A median that did not get there reads ``>MAX``; a ratio against
+    one reads as a lower bound (``>``) or, when nothing can be said, ``-``."""
+    inf = float("inf")
+    rows, base = [], None
     for size in sizes:
         rs = [r for r in results if r["size"] == size]
-        its = [r["iterations"] if r["reached"] else float("inf") for r in rs]
-        med = statistics.median(its)
-        steps = statistics.median([r["env_steps"] if r["reached"] else float("inf") for r in rs])
+        med = statistics.median([r["iterations"] if r["reached"] else inf for r in rs])
+        steps = statistics.median([r["env_steps"] if r["reached"] else inf for r in rs])
         base = med if base is None else base
-        ratio = base / med if med not in (0, float("inf")) else float("nan")
-        print(f"{size:>3} {med!s:>18} {ratio:>15.2f}x {steps!s:>17}")
-    return 0
+        if med == inf or med <= 0:
+            ratio = "-"
+        elif base == inf:
+            ratio = f">{max_iterations / med:.2f}x"
+        else:
+            ratio = f"{base / med:.2f}x"
+        rows.append((size, f">{max_iterations}" if med == inf else f"{med:g}", ratio,
+                     "-" if steps == inf else f"{steps:g}"))
+    return rows
 
 
 if __name__ == "__main__":
