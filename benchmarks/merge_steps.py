@@ -60,21 +60,28 @@ def main(argv=None) -> int:
 
 def branches(paths) -> int:
     """Print, per iteration with every deposit's agent on disk, how far and how alike its branches stepped."""
+    from rl_pool.errors import UsageError
     from rl_pool.protocol import deposits, pool
 
     cfg = pool.read_config(paths, readonly=True)
     print(f"{'iteration':>9} {'branches':>8} {'branch step':>11} {'mean step':>9} {'ratio':>5} {'pair cosine':>11}")
     for i in range(1, deposits.last_selected(paths) + 1):
-        parent = flat(deposits.load_selected_agent(paths, i - 1))
-        steps = []
+        agents = []
         for m in range(cfg.pool_size):
             try:
-                steps.append(flat(deposits.read_deposit(paths, i, m)[1]) - parent)
+                agents.append(flat(deposits.read_deposit(paths, i, m)[1]))
             except ValueError:  # deleted (or never there): this iteration is not whole
                 break
-        if len(steps) < 2 or len(steps) < cfg.pool_size:
+        if len(agents) < max(2, cfg.pool_size):
             continue
+        try:
+            parent = flat(deposits.load_selected_agent(paths, i - 1))
+        except (OSError, RuntimeError, UsageError):  # the parent's file is gone or unreadable
+            continue
+        steps = [a - parent for a in agents]
         lengths = [float(np.linalg.norm(s)) for s in steps]
+        if min(lengths) == 0.0:  # a branch that did not move has no direction
+            continue
         mean = float(np.linalg.norm(np.mean(steps, axis=0)))
         cos = [float(a @ b) / (la * lb) for j, (a, la) in enumerate(zip(steps, lengths, strict=True))
                for b, lb in zip(steps[j + 1:], lengths[j + 1:], strict=True)]

@@ -581,3 +581,9 @@ def test_merge_steps_benchmark_prints_the_cosine_of_consecutive_merges(tmp_path,
     assert len(rows) == 1 and rows[0][:2] == ["1", "3"]
     branch, length = sum(lengths) / 3, float(np.sqrt(sum(x * x for x in mean)))
     assert [float(x) for x in rows[0][2:]] == pytest.approx([branch, length, length / branch, cosine], abs=2e-3)
+    # the parent's file gone: that iteration is left out, without a traceback
+    deposits._parsed.clear()
+    os.remove(paths.initial())
+    capsys.readouterr()
+    assert mod.main([str(paths.root), "--branches"]) == 0
+    assert capsys.readouterr().out.splitlines()[1:] == []
