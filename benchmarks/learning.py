@@ -105,33 +105,47 @@ def main(argv=None) -> int:
                 with open(args.out, "a") as fh:
                     fh.write(json.dumps(r | {"options": options, "threshold": args.threshold}) + "\n")
     print(f"\n{'N':>3} {'median iterations':>18} {'fewer than N=' + str(sizes[0]):>16} {'median env steps':>17}")
-    for row in summary(results, sizes, args.max_iterations):
+    for row in summary(results, sizes):
         print(f"{row[0]:>3} {row[1]:>18} {row[2]:>16} {row[3]:>17}")
     return 0
 
 
-def summary(results: list[dict], sizes: list[int], max_iterations: int) -> list[tuple[int, str, str, str]]:
-    """Per pool size: the median iterations and env steps to the threshold over its seeds (a pool
-    that did not get there counts as more than any that did), and how many times fewer iterations
-    than the first size needed. A median that did not get there reads ``>MAX``; a ratio against
-    one reads as a lower bound (``>``) or, when nothing can be said, ``-``."""
+def _median(rs: list[dict], key: str) -> tuple[float, bool]:
+    """``(median, exact)`` of ``key`` over pools ``rs``. A pool that did not get there needed more
+    than the iterations it ran; counting it as just that many gives a lower bound of the median
+    (``exact`` False) whenever such a pool is one of the middle values."""
     inf = float("inf")
+    exact = statistics.median([r[key] if r["reached"] else inf for r in rs])
+    if exact != inf:
+        return exact, True
+    if key == "iterations":
+        return statistics.median([r[key] if r["reached"] else r["ran_iterations"] or 0 for r in rs]), False
+    return inf, False
+
+
+def summary(results: list[dict], sizes: list[int]) -> list[tuple[int, str, str, str]]:
+    """Per pool size: the median iterations and env steps to the threshold over its seeds, and how
+    many times fewer iterations than the first size needed. Pools that failed with an error are
+    left out. A median of pools that did not all get there reads as a lower bound (``>X``); a ratio
+    against one as a bound (``>`` or ``<``), or ``-`` when nothing can be said."""
     rows, base = [], None
     for size in sizes:
-        rs = [r for r in results if r["size"] == size]
-        med = statistics.median([r["iterations"] if r["reached"] else inf for r in rs])
-        steps = statistics.median([r["env_steps"] if r["reached"] else inf for r in rs])
-        base = med if base is None else base
-        if med == inf or med <= 0:
+        rs = [r for r in results if r["size"] == size and not r.get("error")]
+        if not rs:
+            rows.append((size, "-", "-", "-"))
+            base = base or (0.0, False)  # no first size to compare with
+            continue
+        med, exact = _median(rs, "iterations")
+        steps, steps_exact = _median(rs, "env_steps")
+        if base is None:
+            base = (med, exact)
+            ratio = "1.00x"
+        elif med <= 0 or base[0] <= 0 or (not exact and not base[1]):
             ratio = "-"
-        elif base == inf:
-            ratio = f">{max_iterations / med:.2f}x"
         else:
-            ratio = f"{base / med:.2f}x"
-        rows.append((size, f">{max_iterations}" if med == inf else f"{med:g}", ratio,
-                     "-" if steps == inf else f"{steps:g}"))
+            ratio = f"{'' if exact and base[1] else '>' if exact else '<'}{base[0] / med:.2f}x"
+        rows.append((size, f"{med:g}" if exact else f">{med:g}", ratio, f"{steps:.0f}" if steps_exact else "-"))
     return rows
-
 
 if __name__ == "__main__":
     sys.exit(main())

@@ -19,6 +19,7 @@ would estimate ``|g|^2 / |step|^2`` and the mean of k branches would keep about
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 
 import numpy as np
@@ -34,11 +35,16 @@ def main(argv=None) -> int:
     p.add_argument("--branches", action="store_true",
                    help="per iteration: how far the branches step, alone and on average, and how alike")
     args = p.parse_args(argv)
+    from rl_pool.errors import UsageError
     from rl_pool.protocol import deposits, layout
 
     paths = layout.Paths(args.pool_dir)
     if args.branches:
-        return branches(paths)
+        try:
+            return branches(paths)
+        except UsageError as exc:  # not a pool
+            print(f"merge_steps.py: {exc}", file=sys.stderr)
+            return 2
     last = deposits.last_selected(paths)
     steps = []  # (iteration, step) of consecutive merges
     for i in range(1, last + 1):
@@ -68,9 +74,11 @@ def branches(paths) -> int:
     for i in range(1, deposits.last_selected(paths) + 1):
         agents = []
         for m in range(cfg.pool_size):
+            if not os.path.exists(paths.deposit_npz(i, m)):  # deleted as the pool went on: not whole
+                break
             try:
                 agents.append(flat(deposits.read_deposit(paths, i, m)[1]))
-            except ValueError:  # deleted (or never there): this iteration is not whole
+            except ValueError:  # unreadable, or not what its metrics say
                 break
         if len(agents) < max(2, cfg.pool_size):
             continue
@@ -86,7 +94,7 @@ def branches(paths) -> int:
         cos = [float(a @ b) / (la * lb) for j, (a, la) in enumerate(zip(steps, lengths, strict=True))
                for b, lb in zip(steps[j + 1:], lengths[j + 1:], strict=True)]
         branch = float(np.mean(lengths))
-        print(f"{i:>9} {len(steps):>8} {branch:>11.4f} {mean:>9.4f} {mean / branch:>5.2f} {np.mean(cos):>11.3f}")
+        print(f"{i:>9} {len(steps):>8} {branch:>11.4f} {mean:>9.4f} {mean / branch:>5.3f} {np.mean(cos):>11.3f}")
     return 0
 
 

@@ -587,3 +587,15 @@ def test_merge_steps_benchmark_prints_the_cosine_of_consecutive_merges(tmp_path,
     capsys.readouterr()
     assert mod.main([str(paths.root), "--branches"]) == 0
     assert capsys.readouterr().out.splitlines()[1:] == []
+    # iteration 2 made whole again: it is shown; with a branch that did not move, it is left out
+    for branch, shown in ((agent(99), True), (deposits.load_selected_agent(paths, 1), False)):
+        for f in (paths.deposit_npz(2, 1), paths.deposit_json(2, 1)):
+            if os.path.exists(f):
+                os.remove(f)
+        deposits.deposit(paths, 2, 1, branch, {"iteration": 2, "eval_return": 8.0})
+        capsys.readouterr()
+        assert mod.main([str(paths.root), "--branches"]) == 0
+        assert [r.split()[0] for r in capsys.readouterr().out.splitlines()[1:]] == (["2"] if shown else [])
+    # not a pool: one line, exit 2
+    assert mod.main([str(tmp_path / "nothing"), "--branches"]) == 2
+    assert capsys.readouterr().err.count("\n") == 1
