@@ -110,17 +110,16 @@ def main(argv=None) -> int:
     return 0
 
 
-def _median(rs: list[dict], key: str) -> tuple[float, bool]:
+def _median(rs: list[dict], key: str, bound: str | None = None) -> tuple[float, bool]:
     """``(median, exact)`` of ``key`` over pools ``rs``. A pool that did not get there needed more
-    than the iterations it ran; counting it as just that many gives a lower bound of the median
-    (``exact`` False) whenever such a pool is one of the middle values."""
+    than its ``bound`` (the iterations it ran); counting it as just that gives a lower bound of the
+    median (``exact`` False) whenever such a pool is one of the middle values. Without ``bound``
+    such a median is unknown (inf)."""
     inf = float("inf")
     exact = statistics.median([r[key] if r["reached"] else inf for r in rs])
-    if exact != inf:
-        return exact, True
-    if key == "iterations":
-        return statistics.median([r[key] if r["reached"] else r["ran_iterations"] or 0 for r in rs]), False
-    return inf, False
+    if exact != inf or bound is None:
+        return exact, exact != inf
+    return statistics.median([r[key] if r["reached"] else r[bound] or 0 for r in rs]), False
 
 
 def summary(results: list[dict], sizes: list[int]) -> list[tuple[int, str, str, str]]:
@@ -135,7 +134,7 @@ def summary(results: list[dict], sizes: list[int]) -> list[tuple[int, str, str, 
             rows.append((size, "-", "-", "-"))
             base = base or (0.0, False)  # no first size to compare with
             continue
-        med, exact = _median(rs, "iterations")
+        med, exact = _median(rs, "iterations", bound="ran_iterations")
         steps, steps_exact = _median(rs, "env_steps")
         if base is None:
             base = (med, exact)

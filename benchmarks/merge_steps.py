@@ -36,15 +36,21 @@ def main(argv=None) -> int:
                    help="per iteration: how far the branches step, alone and on average, and how alike")
     args = p.parse_args(argv)
     from rl_pool.errors import UsageError
-    from rl_pool.protocol import deposits, layout
+    from rl_pool.protocol import layout
 
     paths = layout.Paths(args.pool_dir)
-    if args.branches:
-        try:
-            return branches(paths)
-        except UsageError as exc:  # not a pool
-            print(f"merge_steps.py: {exc}", file=sys.stderr)
-            return 2
+    try:
+        return branches(paths) if args.branches else merges(paths)
+    except UsageError as exc:  # not a pool
+        print(f"merge_steps.py: {exc}", file=sys.stderr)
+        return 2
+
+
+def merges(paths) -> int:
+    """Print each merge's step length and its cosine with the next merge's step."""
+    from rl_pool.protocol import deposits, pool
+
+    pool.read_config(paths, readonly=True)  # a pool, or UsageError
     last = deposits.last_selected(paths)
     steps = []  # (iteration, step) of consecutive merges
     for i in range(1, last + 1):
