@@ -24,6 +24,8 @@ import sys
 
 import numpy as np
 
+from rl_pool.errors import UsageError
+
 
 def flat(agent) -> np.ndarray:
     return np.concatenate([np.ravel(agent.params[k]) for k in sorted(agent.params)])
@@ -35,7 +37,6 @@ def main(argv=None) -> int:
     p.add_argument("--branches", action="store_true",
                    help="per iteration: how far the branches step, alone and on average, and how alike")
     args = p.parse_args(argv)
-    from rl_pool.errors import UsageError
     from rl_pool.protocol import layout
 
     paths = layout.Paths(args.pool_dir)
@@ -72,7 +73,6 @@ def merges(paths) -> int:
 
 def branches(paths) -> int:
     """Print, per iteration with every deposit's agent on disk, how far and how alike its branches stepped."""
-    from rl_pool.errors import UsageError
     from rl_pool.protocol import deposits, pool
 
     cfg = pool.read_config(paths, readonly=True)
