@@ -36,8 +36,9 @@ PRESETS: dict[str, dict] = {
                           "eval_episodes": 10, "learning_rates": [0.01, 0.1]},
     "pusher": {"env": "Pusher-v5", "eval_episodes": 20, "train_episodes": 100, "batch_episodes": 50,
                "policy": "mlp", "hidden": "64,64", "init_shape": 20.0, "learning_rates": [0.001, 0.003]},
-    "humanoid": {"env": "Humanoid-v5", "reward_shift": 5.0, "selection": "branches", "revert_after": 20,
-                 "eval_episodes": 10, "train_episodes": 40, "batch_episodes": 20, "learning_rates": [0.01, 0.03]},
+    "humanoid": {"env": "Humanoid-v5", "gamma": 0.99, "selection": "branches", "revert_after": 20,
+                 "eval_episodes": 10, "train_episodes": 40, "batch_episodes": 20, "policy": "mlp",
+                 "hidden": "64,64", "init_shape": 20.0, "learning_rates": [0.001, 0.003]},
     "humanoid-standup": {"env": "HumanoidStandup-v5", "eval_episodes": 5, "learning_rates": [0.003, 0.01]},
 }
 
