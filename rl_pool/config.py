@@ -66,6 +66,12 @@ class PoolConfig:
                                added=True)
     revert_after: int = opt(0, "go back to the best selected agent after K iterations without a new best "
                                "(0: never)")
+    rate_patience: int = opt(0, "after K iterations without a new best, every member's learning rate is "
+                                "multiplied by --rate-decay (again after each further K); a new best divides "
+                                "it by --rate-decay, up to the rates given (0: the rates never change)",
+                             added=True)
+    rate_decay: float = opt(0.5, "with --rate-patience: the factor a plateau multiplies the learning rates by "
+                                 "(0 < F < 1)", added=True)
     best_score: str = opt("first", "what ranks the best selected agent (the one --revert-after goes back to): "
                                    "its score in the iteration it was selected, or the mean of that and every "
                                    "later re-score of it as the parent (a lucky first score wears off; with "
@@ -148,6 +154,10 @@ class PoolConfig:
             raise UsageError("--parent-patience needs --selection parent (it ends a run of parent wins)")
         if self.revert_after < 0:
             raise UsageError(f"--revert-after must be >= 0, got {self.revert_after}")
+        if self.rate_patience < 0:
+            raise UsageError(f"--rate-patience must be >= 0, got {self.rate_patience}")
+        if not (math.isfinite(self.rate_decay) and 0.0 < self.rate_decay < 1.0):
+            raise UsageError(f"--rate-decay must be in (0, 1), got {self.rate_decay}")
         try:
             self.spec  # noqa: B018 (parses --hidden and checks the policy)
         except ValueError as exc:
@@ -190,6 +200,8 @@ class PoolConfig:
             cfg = cls(**base).validate()
             if "merge_momentum" in requested and cfg.merge != "momentum":
                 raise UsageError("--merge-momentum needs --merge momentum")
+            if "rate_decay" in requested and not cfg.rate_patience:
+                raise UsageError("--rate-decay needs --rate-patience")
             return cfg
         for name, value in requested.items():
             have = getattr(saved, name)

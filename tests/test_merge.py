@@ -599,3 +599,48 @@ def test_merge_steps_benchmark_prints_the_cosine_of_consecutive_merges(tmp_path,
     # not a pool: one line, exit 2
     assert mod.main([str(tmp_path / "nothing"), "--branches"]) == 2
     assert capsys.readouterr().err.count("\n") == 1
+
+
+# ---------------------------------------------------------------- learning rates that follow the pool's progress
+RATE_CASES = [
+    # (name, previous rate, best iteration after the selection, expected rate)
+    ("a pool's first plateau iteration counts", None, 0, {"scale": 1.0, "since": 1}),
+    ("K iterations without a new best halve the rates", {"scale": 1.0, "since": 2}, 0, {"scale": 0.5, "since": 0}),
+    ("a new best doubles them back", {"scale": 0.25, "since": 1}, 1, {"scale": 0.5, "since": 0}),
+    ("never above the rates given", {"scale": 1.0, "since": 2}, 1, {"scale": 1.0, "since": 0}),
+    ("never below the floor", {"scale": selection.MIN_RATE_SCALE, "since": 2}, 0,
+     {"scale": selection.MIN_RATE_SCALE, "since": 0}),
+    ("a garbled record counts as the rates given", {"scale": "x", "since": -4}, 0, {"scale": 1.0, "since": 1}),
+]
+
+
+@pytest.mark.parametrize("name,rate,best_at,want", RATE_CASES, ids=[c[0] for c in RATE_CASES])
+def test_rate_patience(name, rate, best_at, want):
+    best = {"iteration": 0, "eval_return": 9.0, "score": 9.0, "agent": "x.npz", "agent_sha256": "b" * 64}
+    previous = PREVIOUS | {"best": best} | ({"rate": rate} if rate is not None else {})
+    rows = [_report(0, 10.0 if best_at else 3.0), _report(1, 2.0)]  # 10 beats the best of 9: a new best
+    out, _ = selection.decide(_cfg("none", n=2, selection="branches", rate_patience=3), 1, previous, rows, [],
+                              "complete")
+    assert out["best"]["iteration"] == best_at and out["rate"] == want
+
+
+def test_a_revert_is_no_new_best_for_the_rates():
+    best = {"iteration": 0, "eval_return": 99.0, "score": 99.0, "agent": "x.npz", "agent_sha256": "b" * 64}
+    cfg = _cfg("none", n=2, revert_after=2, rate_patience=2)
+    out, _ = selection.decide(cfg, 1, PREVIOUS | {"best": best, "since_best": 1, "rate": {"scale": 1.0, "since": 1}},
+                              [_report(0, 3.0, 4.0), _report(1, 2.0)], [], "complete")
+    assert out["winner"] == "revert" and out["rate"] == {"scale": 0.5, "since": 0}
+    assert selection.rate_scale(out) == 0.5 and selection.rate_scale(PREVIOUS) == 1.0
+
+
+def test_without_rate_patience_the_records_carry_no_rate():
+    out, _ = selection.decide(_cfg("none", n=2), 1, PREVIOUS | {"rate": {"scale": 0.5, "since": 0}},
+                              [_report(0, 3.0, 4.0), _report(1, 2.0)], [], "complete")
+    assert "rate" not in out
+    for kw, why in (({"rate_patience": -1}, "--rate-patience must be"),
+                    ({"rate_patience": 2, "rate_decay": 1.0}, "--rate-decay must be in"),
+                    ({"rate_patience": 2, "rate_decay": 0.0}, "--rate-decay must be in")):
+        with pytest.raises(UsageError, match=why):
+            _cfg("none", **kw)
+    with pytest.raises(UsageError, match="--rate-decay needs --rate-patience"):
+        PoolConfig.merged({"rate_decay": 0.7}, None)

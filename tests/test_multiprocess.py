@@ -405,6 +405,41 @@ def test_shell_pool_script_stops_on_signal_and_resumes(tmp_path):
     assert lrs == {0: 0.02, 1: 0.2}
 
 
+def _run_with_a_kill(d, lrs, args, victim, kill_at):
+    """Members at rates ``lrs`` in the pool ``d``; with ``kill_at``, member ``victim`` is killed with
+    SIGKILL while it trains in an iteration >= ``kill_at`` and started again. Returns when all are done."""
+
+    def start(m):
+        return spawn("train", "--pool-dir", d, "--member", m, "--learning-rate", lrs[m], *args)
+
+    procs = [start(m) for m in range(len(lrs))]
+    if kill_at is not None:
+        _kill_while_training(d, victim, procs[victim], kill_at)
+        procs[victim] = start(victim)
+    for p in procs:
+        _, err = p.communicate(timeout=240)
+        assert p.returncode == 0, err
+
+
+def _kill_while_training(d, m, proc, kill_at):
+    """SIGKILL member ``m`` (process ``proc``) of the pool in ``d`` while its heartbeat says it trains in an
+    iteration >= ``kill_at``."""
+    hb = d / f"members/member-{m:03d}.json"
+    deadline, killed = time.time() + 120, False
+    while time.time() < deadline and not killed:
+        try:
+            doc = json.loads(hb.read_text())
+        except (OSError, ValueError):
+            doc = {}
+        if doc.get("state") == "training" and (doc.get("iteration") or 0) >= kill_at:
+            proc.send_signal(signal.SIGKILL)
+            killed = True
+        time.sleep(0.001)
+    assert killed, f"member {m} never trained in a late enough iteration"
+    proc.wait()
+    assert proc.returncode == -signal.SIGKILL
+
+
 def _momentum_pool(d, kill_at=None):
     """A 4-member pool with ``--merge momentum``; with ``kill_at``, member 2 is killed with SIGKILL
     while it trains in an iteration >= ``kill_at`` and started again."""
@@ -412,29 +447,7 @@ def _momentum_pool(d, kill_at=None):
     args = ["--pool-size", n, "--iterations", iters, *SHORT, "--quiet", "--seed", 0, "--merge", "momentum",
             "--quorum", n]  # the others wait for a killed member: the uninterrupted history
 
-    def start(m):
-        return spawn("train", "--pool-dir", d, "--member", m, "--learning-rate", 0.03, *args)
-
-    procs = [start(m) for m in range(n)]
-    if kill_at is not None:
-        hb = d / "members/member-002.json"
-        deadline, killed = time.time() + 120, False
-        while time.time() < deadline and not killed:
-            try:
-                doc = json.loads(hb.read_text())
-            except (OSError, ValueError):
-                doc = {}
-            if doc.get("state") == "training" and (doc.get("iteration") or 0) >= kill_at:
-                procs[2].send_signal(signal.SIGKILL)
-                killed = True
-            time.sleep(0.001)
-        assert killed, "member 2 never trained in a late enough iteration"
-        procs[2].wait()
-        assert procs[2].returncode == -signal.SIGKILL
-        procs[2] = start(2)
-    for p in procs:
-        _, err = p.communicate(timeout=240)
-        assert p.returncode == 0, err
+    _run_with_a_kill(d, [0.03] * n, args, 2, kill_at)
     return [json.loads((d / f"iterations/{i:06d}/selected.json").read_text()) for i in range(1, iters + 1)]
 
 
@@ -455,4 +468,50 @@ def test_a_momentum_pool_killed_and_restarted_replays_its_merges(tmp_path):
                 assert "momentum" not in sel["merge"]
     again = _momentum_pool(tmp_path / "killed", kill_at=3)
     keys = ("winner", "member", "eval_return", "agent_sha256", "merge", "considered", "parent", "fallback")
+    assert [{k: s.get(k) for k in keys} for s in again] == [{k: s.get(k) for k in keys} for s in sels]
+
+
+def _rate_pool(d, kill_at=None):
+    """A 2-member pool whose rates follow its progress (``--rate-patience 1``): every iteration
+    without a new best halves them. With ``kill_at``, member 1 is killed with SIGKILL while it trains
+    in an iteration >= ``kill_at`` and started again."""
+    iters = 8
+    args = ["--pool-size", 2, "--iterations", iters, *SHORT, "--quiet", "--seed", 1, "--rate-patience", 1]
+
+    _run_with_a_kill(d, [0.03, 0.3], args, 1, kill_at)
+    return [json.loads((d / f"iterations/{i:06d}/selected.json").read_text()) for i in range(iters + 1)]
+
+
+def test_rates_that_follow_the_pool_train_every_branch_and_replay_after_a_kill(tmp_path):
+    """``--rate-patience``: each selection's rate follows from the one before and whether it found a new
+    best; each member trains at its rate times the scale its parent selection carries (retraining a
+    branch in this process at that rate gives its deposit's parameters exactly, at the rate given
+    other ones); a member killed mid-iteration and started again replays the same selections."""
+    from rl_pool.config import PoolConfig
+    from rl_pool.learning import envs, trainer
+
+    d = tmp_path / "whole"
+    sels = _rate_pool(d)
+    cfg = PoolConfig.from_json(json.loads((d / "pool.json").read_text()))
+    scales = []
+    for prev, sel in itertools.pairwise(sels):
+        assert sel["rate"] == selection.next_rate(prev, sel, 1, 0.5)
+        i = sel["iteration"]
+        for m in range(2):
+            doc = json.loads((d / f"iterations/{i:06d}/member-{m:03d}.json").read_text())
+            assert doc["rate_scale"] == selection.rate_scale(prev) and doc["learning_rate"] == (0.03, 0.3)[m]
+        scales.append(selection.rate_scale(prev))
+    assert min(scales) < 1.0, scales
+    i = next(k for k, s in enumerate(scales, start=1) if s < 1.0)
+    parent = Agent.load(d / sels[i - 1]["agent"])
+    dep = Agent.load(d / f"iterations/{i:06d}/member-001.npz")
+    env_list = [envs.make(cfg.env, dict(cfg.env_kwargs, max_episode_steps=cfg.max_episode_steps))[0]
+                for _ in range(max(cfg.batch_episodes, cfg.eval_episodes))]
+    scaled = trainer.train(parent, env_list, cfg, 0.3 * scales[i - 1], 1, i).agent
+    given = trainer.train(parent, env_list, cfg, 0.3, 1, i).agent
+    for name in dep.params:
+        np.testing.assert_array_equal(scaled.params[name], dep.params[name])
+    assert any(not np.array_equal(given.params[n], dep.params[n]) for n in dep.params)
+    again = _rate_pool(tmp_path / "killed", kill_at=3)
+    keys = ("winner", "member", "eval_return", "agent_sha256", "rate", "considered", "parent")
     assert [{k: s.get(k) for k in keys} for s in again] == [{k: s.get(k) for k in keys} for s in sels]

@@ -229,7 +229,8 @@ def _loop(paths: layout.Paths, cfg: PoolConfig, mc: MemberConfig, hb: heartbeat.
             else:
                 start = deposits.load_selected_agent(paths, i - 1, prev, like=like)
                 hb.set(state="training", iteration=i)
-                tr = trainer.train(start, env_list, cfg, lr, me, i)
+                scale = selection.rate_scale(prev)  # --rate-patience: the pool's share of every rate
+                tr = trainer.train(start, env_list, cfg, lr * scale, me, i)
                 hb.update(state="evaluating")  # shown by the next periodic beat: one write less per iteration
                 ev = trainer.evaluate(tr.agent, env_list, cfg, i)
                 parent = {}
@@ -244,7 +245,7 @@ def _loop(paths: layout.Paths, cfg: PoolConfig, mc: MemberConfig, hb: heartbeat.
                               "parent_eval_seconds": pe.seconds, "parent_eval_steps": pe.steps}
                     parent |= _score_fallback(paths, cfg, prev, like, env_list, i)
                 metrics = ev.summary() | parent | {
-                    "learning_rate": lr,
+                    "learning_rate": lr, **({"rate_scale": scale} if cfg.rate_patience else {}),
                     "train_steps": tr.steps, "train_seconds": tr.seconds,
                     "train_return_mean": sum(tr.episode_returns) / len(tr.episode_returns),
                     "eval_steps": ev.steps, "eval_seconds": ev.seconds,

@@ -276,10 +276,44 @@ def decide(cfg: PoolConfig, i: int, previous: dict, reports: list[dict], skipped
     if patience_out:
         out["patience"] = streak
     out = track_best(out, previous, cfg.revert_after, cfg.best_score == "mean")
+    if cfg.rate_patience:
+        out["rate"] = next_rate(previous, out, cfg.rate_patience, cfg.rate_decay)
     if cfg.parent_patience:  # after track_best: a parent kept and then reverted is no longer a parent kept
         kept, nothing = out["winner"] in ("parent", "fallback"), out["winner"] == "carried"
         out["parent_streak"] = streak + 1 if kept else streak if nothing else 0
     return out, needs
+
+
+#: The smallest share of its given learning rate a member is taken down to by ``--rate-patience``.
+MIN_RATE_SCALE = 0.01
+
+
+def rate_scale(previous: dict) -> float:
+    """The share of its given learning rate every member trains with after ``previous`` (1 when the
+    record carries no valid scale: a pool without ``--rate-patience``, or its first iteration)."""
+    rate = previous.get("rate")
+    c = rate.get("scale") if isinstance(rate, dict) else None
+    return float(min(max(c, MIN_RATE_SCALE), 1.0)) if finite(c) else 1.0
+
+
+def next_rate(previous: dict, out: dict, patience: int, decay: float) -> dict:
+    """``{"scale", "since"}`` after selection ``out``: the pool-wide share of the learning rates
+    (``--rate-patience``) and the iterations since it last changed or the pool last found a new
+    best. A new best divides the scale by ``decay`` (up to 1: the pool is climbing at this step
+    size, and may again at a larger one); ``patience`` iterations without one multiply it by
+    ``decay`` (down to :data:`MIN_RATE_SCALE`): a plateau asks for smaller steps, as a learning
+    rate reduced on a plateau does in supervised training."""
+    scale = rate_scale(previous)
+    rate = previous.get("rate")
+    since = rate.get("since") if isinstance(rate, dict) else None
+    since = since if isinstance(since, int) and not isinstance(since, bool) and since >= 0 else 0
+    best = out.get("best")
+    if isinstance(best, dict) and best.get("iteration") == out["iteration"]:
+        return {"scale": min(scale / decay, 1.0), "since": 0}
+    since += 1
+    if since >= patience:
+        return {"scale": max(scale * decay, MIN_RATE_SCALE), "since": 0}
+    return {"scale": scale, "since": since}
 
 
 def parent_streak(previous: dict) -> int:
