@@ -67,7 +67,7 @@ class PoolConfig:
     revert_after: int = opt(0, "go back to the best selected agent after K iterations without a new best "
                                "(0: never)")
     rate_patience: int = opt(0, "after K iterations without a new best, every member's learning rate is "
-                                "multiplied by --rate-decay (again after each further K); a new best divides "
+                                "multiplied by --rate-decay (again after each further K, down to 1/100); a new best divides "
                                 "it by --rate-decay, up to the rates given (0: the rates never change)",
                              added=True)
     rate_decay: float = opt(0.5, "with --rate-patience: the factor a plateau multiplies the learning rates by "
