@@ -6,7 +6,7 @@ import os
 import re
 import time
 
-from rl_pool.protocol import deposits, heartbeat, layout, pool
+from rl_pool.protocol import deposits, heartbeat, layout, pool, selection
 
 _AGENT_RE = re.compile(r"^iterations/(\d{6,})/(?:member-(\d{3,})\.npz|initial\.npz)$")
 
@@ -105,7 +105,7 @@ def history_row(paths: layout.Paths, sel: dict, pool_size: int) -> dict:
         "agent_from": agent_from(sel),
         "reverted_to": sel.get("reverted_to"),
         "merge": sel.get("merge"),
-        "rate_scale": _num(sel["rate"].get("scale")) if isinstance(sel.get("rate"), dict) else None,
+        "rate_scale": selection.rate_scale(sel) if isinstance(sel.get("rate"), dict) else None,
         "eval_return": _num(sel.get("eval_return")),
         "quorum_reason": sel.get("quorum_reason"),
         "skipped": sel.get("skipped", []),

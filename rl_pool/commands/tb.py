@@ -39,7 +39,7 @@ import os
 import time
 
 from rl_pool import fsutil
-from rl_pool.protocol import deposits, layout
+from rl_pool.protocol import deposits, layout, selection
 
 log = logging.getLogger("rl_pool")
 
@@ -106,7 +106,7 @@ def pool_scalars(sel: dict, best: float | None) -> dict[str, float]:
         "return/best": best,
         "pool/branch_won": float(sel.get("winner", "branch") == "branch"),
         "pool/deposits_considered": float(len(considered)) if isinstance(considered, list) else None,
-        "pool/rate_scale": _num(sel["rate"].get("scale")) if isinstance(sel.get("rate"), dict) else None,
+        "pool/rate_scale": selection.rate_scale(sel) if isinstance(sel.get("rate"), dict) else None,
     }
     return {k: v for k, v in out.items() if v is not None}
 

@@ -305,8 +305,7 @@ def next_rate(previous: dict, out: dict, patience: int, decay: float) -> dict:
     rate reduced on a plateau does in supervised training."""
     scale = rate_scale(previous)
     rate = previous.get("rate")
-    since = rate.get("since") if isinstance(rate, dict) else None
-    since = since if isinstance(since, int) and not isinstance(since, bool) and since >= 0 else 0
+    since = count(rate.get("since")) if isinstance(rate, dict) else 0
     best = out.get("best")
     if isinstance(best, dict) and best.get("iteration") == out["iteration"]:
         return {"scale": min(scale / decay, 1.0), "since": 0}
@@ -320,7 +319,11 @@ def parent_streak(previous: dict) -> int:
     """How many iterations in a row, up to ``previous``, the parent or a merge's fallback kept the pool
     (``--parent-patience``; an iteration without a valid deposit, ``carried``, neither counts nor
     ends the run; a revert ends it; 0 when the record has no valid count)."""
-    n = previous.get("parent_streak")
+    return count(previous.get("parent_streak"))
+
+
+def count(n) -> int:
+    """A JSON count: ``n`` if it is an integer >= 0 (not a bool), else 0."""
     return n if isinstance(n, int) and not isinstance(n, bool) and n >= 0 else 0
 
 
