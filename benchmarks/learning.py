@@ -8,7 +8,11 @@ further options after ``--``), stopped as soon as its best evaluated return reac
 threshold, or at ``--max-iterations``. Pools run one after another, each on every core, so
 minutes compare only within one run on one machine; iterations and env steps do not depend on
 the machine (the runs are deterministic in their seed). The last table gives each size's median
-iterations and how many times fewer than the smallest size needed.
+iterations, env steps and minutes, and how many times fewer iterations than 2 members (or the
+smallest size, without 2) needed. ``--summary`` prints that table again from the JSON lines of
+earlier runs (``--out``), one table per set of launch options, e.g. several files' seeds together:
+
+    python benchmarks/learning.py --summary results/scaling/device-16core-preset.jsonl
 """
 
 from __future__ import annotations
@@ -64,6 +68,7 @@ def run_pool(pool_dir: str, size: int, seed: int, threshold: float, max_iteratio
            "env_steps": hit["env_steps"] if hit else None,
            "minutes": round(hit["elapsed_seconds"] / 60, 2) if hit else None,
            "ran_iterations": last.get("iteration"), "best": last.get("best_so_far"),
+           "ran_minutes": round(last["elapsed_seconds"] / 60, 2) if last else None,
            "wall_minutes": round((time.monotonic() - t0) / 60, 2)}
     if proc.returncode not in (0, -signal.SIGINT, 130) and hit is None:
         out["error"] = proc.stderr.read().decode(errors="replace")[-400:] if proc.stderr else ""
@@ -74,21 +79,28 @@ def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--env", default=None, help="task (default: the preset's, else Swimmer-v5)")
     p.add_argument("--preset", default=None)
-    p.add_argument("--threshold", type=float, required=True)
+    p.add_argument("--threshold", type=float, default=None, help="the return to reach (required unless --summary)")
     p.add_argument("--sizes", default="2,8", help="pool sizes, comma-separated")
     p.add_argument("--seeds", default="0,1,2")
     p.add_argument("--max-iterations", type=int, default=150)
     p.add_argument("--workdir", default=None, help="where the pools go (default: a temporary directory)")
     p.add_argument("--out", default=None, help="also write the results as JSON lines here")
+    p.add_argument("--summary", nargs="+", metavar="JSONL", default=None,
+                   help="run nothing: print the summary tables of result lines written earlier by --out "
+                        "(with --seeds given, only those seeds)")
     p.add_argument("options", nargs=argparse.REMAINDER, help="-- then further rl-pool launch options")
     args = p.parse_args(argv)
+    seeds = [int(x) for x in args.seeds.split(",")]
+    if args.summary:
+        return summarize_files(args.summary, seeds if "--seeds" in (argv or sys.argv) else None)
+    if args.threshold is None:
+        p.error("--threshold is required (unless --summary)")
     options = [o for o in args.options if o != "--"]
     if args.preset:
         options = ["--preset", args.preset, *options]
     if args.env:
         options = ["--env", args.env, *options]
     sizes = [int(x) for x in args.sizes.split(",")]
-    seeds = [int(x) for x in args.seeds.split(",")]
     work = args.workdir or tempfile.mkdtemp(prefix="rl-pool-learning-")
     print(f"# {' '.join(options) or 'defaults'}; threshold {args.threshold}; pools in {work}", flush=True)
     print(f"{'N':>3} {'seed':>4} {'iterations':>10} {'env steps':>12} {'minutes':>8}  best", flush=True)
@@ -104,9 +116,7 @@ def main(argv=None) -> int:
             if args.out:
                 with open(args.out, "a") as fh:
                     fh.write(json.dumps(r | {"options": options, "threshold": args.threshold}) + "\n")
-    print(f"\n{'N':>3} {'median iterations':>18} {'fewer than N=' + str(sizes[0]):>16} {'median env steps':>17}")
-    for row in summary(results, sizes):
-        print(f"{row[0]:>3} {row[1]:>18} {row[2]:>16} {row[3]:>17}")
+    print_summary(results, sizes)
     return 0
 
 
@@ -122,29 +132,85 @@ def _median(rs: list[dict], key: str, bound: str | None = None) -> tuple[float, 
     return statistics.median([r[key] if r["reached"] else r[bound] or 0 for r in rs]), False
 
 
-def summary(results: list[dict], sizes: list[int]) -> list[tuple[int, str, str, str]]:
-    """Per pool size: the median iterations and env steps to the threshold over its seeds, and how
-    many times fewer iterations than the first size needed. Pools that failed with an error are
-    left out. A median of pools that did not all get there reads as a lower bound (``>X``); a ratio
-    against one as a bound (``>`` or ``<``), or ``-`` when nothing can be said."""
-    rows, base = [], None
+def summary(results: list[dict], sizes: list[int], base_size: int | None = None) -> list[tuple[int, str, str, str, str]]:
+    """Per pool size: the median iterations, env steps and minutes to the threshold over its seeds,
+    and how many times fewer iterations than ``base_size`` needed (default: 2 members where the
+    sizes have it, else the first size). Pools that failed with an error are left out. A median of
+    pools that did not all get there reads as a lower bound (``>X``); a ratio against one as a
+    bound (``>`` or ``<``), or ``-`` when nothing can be said."""
+    if base_size is None:
+        base_size = 2 if 2 in sizes else sizes[0]
+    stats = {}
     for size in sizes:
         rs = [r for r in results if r["size"] == size and not r.get("error")]
-        if not rs:
-            rows.append((size, "-", "-", "-"))
-            base = base or (0.0, False)  # no first size to compare with
+        if rs:
+            if any(r["reached"] and r.get("minutes") is None for r in rs):
+                minutes = (float("inf"), False)  # not recorded
+            elif all(r.get("ran_minutes") is not None for r in rs):
+                minutes = _median(rs, "minutes", bound="ran_minutes")
+            else:
+                minutes = _median(rs, "minutes")
+            stats[size] = (_median(rs, "iterations", bound="ran_iterations"), _median(rs, "env_steps"), minutes)
+    base = stats[base_size][0] if base_size in stats else (0.0, False)
+    rows = []
+    for size in sizes:
+        if size not in stats:
+            rows.append((size, "-", "-", "-", "-"))
             continue
-        med, exact = _median(rs, "iterations", bound="ran_iterations")
-        steps, steps_exact = _median(rs, "env_steps")
-        if base is None:
-            base = (med, exact)
+        (med, exact), (steps, steps_exact), (minutes, minutes_exact) = stats[size]
+        if size == base_size:
             ratio = "1.00x"
         elif med <= 0 or base[0] <= 0 or (not exact and not base[1]):
             ratio = "-"
         else:
             ratio = f"{'' if exact and base[1] else '>' if exact else '<'}{base[0] / med:.2f}x"
-        rows.append((size, f"{med:g}" if exact else f">{med:g}", ratio, f"{steps:.0f}" if steps_exact else "-"))
+        if minutes == float("inf"):
+            mins = "-"
+        else:
+            mins = f"{minutes:g}" if minutes_exact else f">{minutes:g}"
+        rows.append((size, f"{med:g}" if exact else f">{med:g}", ratio, f"{steps:.0f}" if steps_exact else "-", mins))
     return rows
+
+
+def print_summary(results: list[dict], sizes: list[int]) -> None:
+    base = 2 if 2 in sizes else sizes[0]
+    print(f"\n{'N':>3} {'median iterations':>18} {'fewer than N=' + str(base):>16} {'median env steps':>17} "
+          f"{'median minutes':>15}")
+    for row in summary(results, sizes, base):
+        print(f"{row[0]:>3} {row[1]:>18} {row[2]:>16} {row[3]:>17} {row[4]:>15}")
+
+
+def summarize_files(paths: list[str], seeds: list[int] | None = None) -> int:
+    """The summary tables of JSON lines that ``--out`` wrote earlier (or rows in the same form),
+    one table per launch option set and threshold, in the order they first appear."""
+    groups: dict[tuple, list[dict]] = {}
+    for path in paths:
+        try:
+            with open(path) as fh:
+                lines = [line for line in fh if line.strip()]
+        except OSError as e:
+            print(f"learning.py: cannot read {path}: {e.strerror}", file=sys.stderr)
+            return 2
+        for n, line in enumerate(lines, 1):
+            try:
+                r = json.loads(line)
+                key = (" ".join(r.get("options", [])) or "defaults", r["threshold"], r.get("experiment"))
+                if not {"size", "seed", "reached", "iterations", "ran_iterations"} <= r.keys():
+                    raise KeyError("a field the summary needs")
+            except (ValueError, KeyError, TypeError):
+                print(f"learning.py: {path}:{n}: not a result line", file=sys.stderr)
+                return 2
+            if seeds is None or r["seed"] in seeds:
+                groups.setdefault(key, []).append(r)
+    for (options, threshold, experiment), rs in groups.items():
+        sizes = sorted({r["size"] for r in rs})
+        seeds_seen = sorted({r["seed"] for r in rs})
+        print(f"# {options}; threshold {threshold}" + (f"; experiment {experiment}" if experiment else "")
+              + f"; seeds {','.join(map(str, seeds_seen))}")
+        print_summary(rs, sizes)
+        print()
+    return 0
+
 
 if __name__ == "__main__":
     sys.exit(main())
