@@ -133,3 +133,16 @@ def test_merged_options_only_in_pools_that_merge_from_three():
     for name, other in presets.PRESETS.items():
         if not any(key.startswith("merged_") for key in other):
             assert presets.merged_options(other, 8, "adaptive", "parent") == {}, name
+
+
+def test_a_merged_option_replaces_the_plain_one_in_pools_that_merge(tmp_path, monkeypatch):
+    monkeypatch.setitem(presets.PRESETS, "plain-and-merged", {
+        "env": "Hopper-v5", "selection": "branches", "learning_rates": [0.01, 0.03],
+        "merged_merge": "momentum", "merged_selection": "parent", "merged_parent_patience": 3})
+    cases = [((), ("branches", "adaptive", 0)),  # 2 members: the plain values
+             (("--pool-size", "8"), ("parent", "momentum", 3)),
+             (("--pool-size", "8", "--selection", "branches"), ("branches", "momentum", 0)),  # given: it wins
+             (("--pool-size", "8", "--merge", "none"), ("branches", "none", 0))]  # a pool that never merges
+    for extra, want in cases:
+        _, cfg = _launch_config("plain-and-merged", tmp_path, *extra)
+        assert (cfg.selection, cfg.merge, cfg.parent_patience) == want, extra

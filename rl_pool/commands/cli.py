@@ -63,21 +63,22 @@ def _apply_preset(args) -> dict:
     from rl_pool.config import PoolConfig
 
     own_batch = getattr(args, "train_episodes", None) in (None, chosen.get("train_episodes", PoolConfig.train_episodes))
+    if getattr(args, "pool_size", None) is None and "learning_rates" in chosen:
+        args.pool_size = len(chosen["learning_rates"])
+    size = getattr(args, "pool_size", None) or 1
+    if getattr(args, "merge", None) is None:
+        args.merge = presets.merge(chosen, size)
+    merge = getattr(args, "merge", None) or PoolConfig.merge
+    # in a pool that merges from three branches, the preset's merged_<option> replaces its <option>
+    merged = presets.merged_options(chosen, size, merge, "parent")
     for key, value in chosen.items():
-        if key == "learning_rates":
-            if getattr(args, "pool_size", None) is None:
-                args.pool_size = len(value)
-            continue
-        if key == "batch_episodes" or key.startswith("merged_"):
+        if key in ("learning_rates", "batch_episodes") or key.startswith("merged_") or key in merged:
             continue
         if getattr(args, key, None) is None:
             setattr(args, key, value)
-    if getattr(args, "merge", None) is None:
-        args.merge = presets.merge(chosen, getattr(args, "pool_size", None) or 1)
-    size, merge = getattr(args, "pool_size", None) or 1, getattr(args, "merge", None) or PoolConfig.merge
     if own_batch and getattr(args, "batch_episodes", None) is None:
         args.batch_episodes = presets.batch_episodes(chosen, size, merge)
-    selection = getattr(args, "selection", None) or PoolConfig.selection
+    selection = getattr(args, "selection", None) or merged.get("selection") or PoolConfig.selection
     for key, value in presets.merged_options(chosen, size, merge, selection).items():
         if getattr(args, key, None) is None:
             setattr(args, key, value)

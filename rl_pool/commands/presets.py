@@ -6,7 +6,8 @@ one rate per member (``launch``; ``train --member I`` takes the I-th) and
 ``pool_size`` its length; in pools of 3 or more members, ``merged_merge`` is the
 ``--merge`` rule (:func:`merge`), and when that rule merges with the rule of three
 ``merged_batch_episodes`` replaces ``batch_episodes`` (:func:`batch_episodes`) and the other
-``merged_<option>`` keys set ``<option>`` (:func:`merged_options`).
+``merged_<option>`` keys set ``<option>`` (:func:`merged_options`), in place of the preset's
+own ``<option>`` where it has one.
 """
 
 from __future__ import annotations
