@@ -81,7 +81,7 @@ def main(argv=None) -> int:
     p.add_argument("--preset", default=None)
     p.add_argument("--threshold", type=float, default=None, help="the return to reach (required unless --summary)")
     p.add_argument("--sizes", default="2,8", help="pool sizes, comma-separated")
-    p.add_argument("--seeds", default="0,1,2")
+    p.add_argument("--seeds", default=None, help="comma-separated (default 0,1,2; with --summary: every seed)")
     p.add_argument("--max-iterations", type=int, default=150)
     p.add_argument("--workdir", default=None, help="where the pools go (default: a temporary directory)")
     p.add_argument("--out", default=None, help="also write the results as JSON lines here")
@@ -90,9 +90,10 @@ def main(argv=None) -> int:
                         "(with --seeds given, only those seeds)")
     p.add_argument("options", nargs=argparse.REMAINDER, help="-- then further rl-pool launch options")
     args = p.parse_args(argv)
-    seeds = [int(x) for x in args.seeds.split(",")]
+    seeds = [int(x) for x in args.seeds.split(",")] if args.seeds else None
     if args.summary:
-        return summarize_files(args.summary, seeds if "--seeds" in (argv or sys.argv) else None)
+        return summarize_files(args.summary, seeds)
+    seeds = seeds or [0, 1, 2]
     if args.threshold is None:
         p.error("--threshold is required (unless --summary)")
     options = [o for o in args.options if o != "--"]
