@@ -140,7 +140,7 @@ def summary(results: list[dict], sizes: list[int], base_size: int | None = None)
     pools that did not all get there reads as a lower bound (``>X``); a ratio against one as a
     bound (``>`` or ``<``), or ``-`` when nothing can be said."""
     if base_size is None:
-        base_size = 2 if 2 in sizes else sizes[0]
+        base_size = _base_size(sizes)
     stats = {}
     for size in sizes:
         rs = [r for r in results if r["size"] == size and not r.get("error")]
@@ -173,8 +173,13 @@ def summary(results: list[dict], sizes: list[int], base_size: int | None = None)
     return rows
 
 
+def _base_size(sizes: list[int]) -> int:
+    """The size the ratios compare against: 2 members where the sizes have it, else the first."""
+    return 2 if 2 in sizes else sizes[0]
+
+
 def print_summary(results: list[dict], sizes: list[int]) -> None:
-    base = 2 if 2 in sizes else sizes[0]
+    base = _base_size(sizes)
     print(f"\n{'N':>3} {'median iterations':>18} {'fewer than N=' + str(base):>16} {'median env steps':>17} "
           f"{'median minutes':>15}")
     for row in summary(results, sizes, base):

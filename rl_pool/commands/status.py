@@ -105,7 +105,7 @@ def history_row(paths: layout.Paths, sel: dict, pool_size: int) -> dict:
         "agent_from": agent_from(sel),
         "reverted_to": sel.get("reverted_to"),
         "merge": sel.get("merge"),
-        "rate_scale": selection.rate_scale(sel) if isinstance(sel.get("rate"), dict) else None,
+        "rate_scale": selection.recorded_rate_scale(sel),
         "eval_return": _num(sel.get("eval_return")),
         "quorum_reason": sel.get("quorum_reason"),
         "skipped": sel.get("skipped", []),

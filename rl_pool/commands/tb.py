@@ -106,7 +106,7 @@ def pool_scalars(sel: dict, best: float | None) -> dict[str, float]:
         "return/best": best,
         "pool/branch_won": float(sel.get("winner", "branch") == "branch"),
         "pool/deposits_considered": float(len(considered)) if isinstance(considered, list) else None,
-        "pool/rate_scale": selection.rate_scale(sel) if isinstance(sel.get("rate"), dict) else None,
+        "pool/rate_scale": selection.recorded_rate_scale(sel),
     }
     return {k: v for k, v in out.items() if v is not None}
 

@@ -296,6 +296,12 @@ def rate_scale(previous: dict) -> float:
     return float(min(max(c, MIN_RATE_SCALE), 1.0)) if finite(c) else 1.0
 
 
+def recorded_rate_scale(sel: dict) -> float | None:
+    """The rate scale a selection record carries, for reports (status, TensorBoard): None when it
+    has no ``rate`` (a pool without ``--rate-patience``), else :func:`rate_scale`."""
+    return rate_scale(sel) if isinstance(sel.get("rate"), dict) else None
+
+
 def next_rate(previous: dict, out: dict, patience: int, decay: float) -> dict:
     """``{"scale", "since"}`` after selection ``out``: the pool-wide share of the learning rates
     (``--rate-patience``) and the iterations since it last changed or the pool last found a new
