@@ -67,7 +67,7 @@ def _apply_preset(args) -> dict:
         args.pool_size = len(chosen["learning_rates"])
     size = getattr(args, "pool_size", None) or 1
     if getattr(args, "merge", None) is None:
-        args.merge = presets.merge(chosen, size) or chosen.get("merge")
+        args.merge = presets.merge(chosen, size)
     merge = getattr(args, "merge", None) or PoolConfig.merge
     # in a pool that merges from three branches, the preset's merged_<option> replaces its <option>
     merged = presets.merged_options(chosen, size, merge, "parent")

@@ -68,9 +68,11 @@ def learning_rates(preset: dict, pool_size: int) -> list[float] | None:
 
 def merge(preset: dict, pool_size: int) -> str | None:
     """The preset's ``--merge`` for a pool of ``pool_size``: its ``merged_merge`` in a pool of 3 or
-    more members, else None (the default). A pool of 2 decides alike under every rule that merges
-    from three branches, so its ``pool.json`` stays as the preset made it before."""
-    return preset.get("merged_merge") if pool_size >= 3 else None
+    more members, else its plain ``merge`` (None: the default). A pool of 2 decides alike under every
+    rule that merges from three branches, so its ``pool.json`` stays as the preset made it before."""
+    if pool_size >= 3 and "merged_merge" in preset:
+        return preset["merged_merge"]
+    return preset.get("merge")
 
 
 def batch_episodes(preset: dict, pool_size: int, merge: str) -> int | None:
