@@ -1,5 +1,6 @@
 """`rl-pool compare`: the committed histories of three seeds, pools grouped by settings, bad input."""
 
+import csv
 import glob
 import os
 import struct
@@ -72,12 +73,45 @@ def test_pools_differing_only_in_seed_form_one_group(tmp_path):
     assert "5 [4, 6]" in med  # seconds to 20: pool a at iteration 3 (6 s), pool b at iteration 2 (4 s)
 
 
+def _best_by_steps(path, steps):
+    """Reference for --at-steps: the best evaluation return among the rows at or before ``steps``
+    env steps, by a plain loop over the CSV; None if the run ended more than 5% short of them."""
+    with open(path, newline="") as fh:
+        rows = list(csv.DictReader(fh))
+    if float(rows[-1]["env_steps"]) < 0.95 * steps:
+        return None
+    seen = [float(r["eval_return"]) for r in rows if r["eval_return"] and float(r["env_steps"]) <= steps]
+    return max(seen) if seen else None
+
+
+@pytest.mark.skipif(len(SEEDS) != 3, reason="the committed seed histories are not in this checkout")
+def test_best_at_env_steps_matches_a_plain_loop_over_the_csv():
+    at = [0.5, 1, 2.5, 40]  # 40 M: longer than any of these runs
+    p = rl_pool("compare", *SEEDS, "--at-steps", ",".join(map(str, at)), check=0)
+    head, *lines = p.stdout.splitlines()
+    assert "min" not in head.replace("minutes", "") and "best at 2.5 M steps" in head
+    for path in SEEDS:
+        name = "seeds/" + os.path.splitext(os.path.basename(path))[0]
+        cells = next(ln for ln in lines if ln.startswith(name + " ")).split()[4:]
+        want = [_best_by_steps(path, 1e6 * s) for s in at]
+        assert want[-1] is None and all(w is not None for w in want[:-1])
+        assert cells == [status.fixed(w, 1) for w in want], (name, cells, want)
+
+
+def test_best_at_env_steps_of_a_pool(tmp_path):
+    a = fake_pool(tmp_path / "a", [[10.0, 12.0], [15.0, 11.0], [20.0, 25.0]], seed=0)
+    run = compare.load(a.root)  # 2400 env steps per iteration
+    assert [run.best_at_steps(s) for s in (2000, 2400, 4799, 4800, 7200, 7500, 7700)] == \
+        [None, 12.0, 12.0, 15.0, 25.0, 25.0, None]
+
+
 def test_bad_inputs_are_one_line_and_exit_2(tmp_path):
     bad_csv = tmp_path / "x.csv"
     bad_csv.write_text("a,b\n1,2\n")
     for args, why in (([tmp_path / "nope"], "no pool directory or history.csv"),
                       ([bad_csv], "not a history.csv"),
                       ([*SEEDS[:1], "--at", "0,5"], "--at"),
+                      ([*SEEDS[:1], "--at-steps", "1,-2"], "--at-steps"),
                       ([*SEEDS[:2], "--groups", "a"], "--groups has 1 names for 2 inputs")):
         p = rl_pool("compare", *args)
         assert p.returncode == 2 and why in p.stderr and "Traceback" not in p.stderr, p.stderr

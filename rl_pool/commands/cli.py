@@ -176,8 +176,9 @@ def cmd_compare(args) -> int:
     from rl_pool.commands import compare
 
     text = compare.compare(args.inputs, out=args.out, threshold=args.threshold,
-                           at_minutes=args.at or compare.DEFAULT_AT,
-                           groups=args.groups, metric=args.metric, title=args.title)
+                           at_minutes=args.at or (() if args.at_steps else compare.DEFAULT_AT),
+                           groups=args.groups, metric=args.metric, title=args.title,
+                           at_steps=args.at_steps or ())
     print(text)
     if args.out:
         print(args.out)
@@ -276,7 +277,10 @@ def build_parser() -> argparse.ArgumentParser:
                    help="report the wall time and env steps at which each run's return first reached X")
     c.add_argument("--at", type=_float_list, default=None, metavar="M1,M2,...",
                    help="minutes at which to report the best return so far (default 1,2,5,10,20, "
-                        "up to the longest run)")
+                        "up to the longest run; none by default with --at-steps)")
+    c.add_argument("--at-steps", type=_float_list, default=None, metavar="S1,S2,...",
+                   help="millions of env steps (all members) at which to report the best return so far: "
+                        "runs made on machines of different speeds compare at equal samples")
     c.add_argument("--groups", type=_name_list, default=None, metavar="G1,G2,...",
                    help="one group name per input (default: pools that differ only in --seed, or CSVs "
                         "named ...seedN in one folder, form a group)")

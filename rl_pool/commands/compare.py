@@ -8,7 +8,8 @@ named with ``--groups``) are summarised together: the plot shows each group's
 median curve with the min-max range across its runs, against wall-clock time
 and against env steps (all members, training and evaluation), and the printed
 table gives per run and per group (median [min, max]) the best return at
-given times and the time and env steps to a threshold.
+given times (or env steps: runs from machines of different speeds compare at equal
+samples) and the time and env steps to a threshold.
 """
 
 from __future__ import annotations
@@ -52,6 +53,16 @@ class Run:
         if self.duration < seconds - min(30.0, 0.05 * seconds):
             return None
         k = int(np.searchsorted(self.seconds, seconds, side="right"))
+        if k == 0 or not np.isfinite(self.best[k - 1]):
+            return None
+        return float(self.best[k - 1])
+
+    def best_at_steps(self, steps: float) -> float | None:
+        """Best return so far once ``steps`` env steps were taken (the last iteration at or before
+        them); None if the run stopped more than 5% short of them."""
+        if not len(self.steps) or not self.steps[-1] >= 0.95 * steps:
+            return None
+        k = int(np.searchsorted(self.steps, steps, side="right"))
         if k == 0 or not np.isfinite(self.best[k - 1]):
             return None
         return float(self.best[k - 1])
@@ -172,11 +183,15 @@ def _fmt_spread(s, nd: int = 1, scale: float = 1.0, of: int = 0) -> str:
     return text + (f" ({n}/{of})" if n < of else "")
 
 
-def table(groups: dict[str, list[Run]], threshold: float | None, at_minutes) -> str:
-    """Per run and per group: iterations, duration, best at each time, time and env steps to ``threshold``."""
+def table(groups: dict[str, list[Run]], threshold: float | None, at_minutes, at_steps=()) -> str:
+    """Per run and per group: iterations, duration, best at each time (``at_minutes``) and at each
+    count of env steps (``at_steps``, millions), time and env steps to ``threshold``."""
     longest = max((r.duration for rs in groups.values() for r in rs), default=0.0)
-    marks = [m for m in at_minutes if m * 60 <= longest + min(30.0, 3.0 * m)] or list(at_minutes[:1])
+    marks = [m for m in at_minutes if m * 60 <= longest + min(30.0, 3.0 * m)]
+    if not marks and not at_steps:
+        marks = list(at_minutes[:1])
     head = ["run", "iterations", "minutes", "best"] + [f"best at {m:g} min" for m in marks]
+    head += [f"best at {s:g} M steps" for s in at_steps]
     if threshold is not None:
         head += [f"time to {threshold:g} (s)", f"env steps to {threshold:g} (M)"]
     rows = []
@@ -186,6 +201,7 @@ def table(groups: dict[str, list[Run]], threshold: float | None, at_minutes) -> 
                      str(len(r.seconds)), _fmt(r.duration, 1, 60.0),
                      _fmt(float(np.nanmax(r.best)) if np.isfinite(r.best).any() else None, 1)]
             cells += [_fmt(r.best_at(60 * m)) for m in marks]
+            cells += [_fmt(r.best_at_steps(1e6 * s)) for s in at_steps]
             if threshold is not None:
                 t, s = r.reach(threshold)
                 cells += [_fmt(t, 0), _fmt(s, 2, 1e6)]
@@ -196,6 +212,7 @@ def table(groups: dict[str, list[Run]], threshold: float | None, at_minutes) -> 
                      _fmt_spread(_spread([float(np.nanmax(r.best)) if np.isfinite(r.best).any() else None
                                           for r in runs]), of=n)]
             cells += [_fmt_spread(_spread([r.best_at(60 * m) for r in runs]), of=n) for m in marks]
+            cells += [_fmt_spread(_spread([r.best_at_steps(1e6 * s) for r in runs]), of=n) for s in at_steps]
             if threshold is not None:
                 reach = [r.reach(threshold) for r in runs]
                 cells += [_fmt_spread(_spread([t for t, _ in reach]), 0, of=n),
@@ -279,17 +296,20 @@ def plot(groups: dict[str, list[Run]], out: str, threshold: float | None = None,
 
 def compare(paths: list[str], out: str | None = None, threshold: float | None = None,
             at_minutes=DEFAULT_AT, groups: list[str] | None = None, metric: str = "selected",
-            title: str | None = None) -> str:
-    """Load, group, plot (if ``out``) and return the table as text."""
+            title: str | None = None, at_steps=()) -> str:
+    """Load, group, plot (if ``out``) and return the table as text. ``at_steps``: millions of env
+    steps at which the table also reports the best return so far."""
     if not paths:
         raise UsageError("give at least one pool directory or history.csv")
     if threshold is not None and not math.isfinite(threshold):
         raise UsageError(f"--threshold must be a finite number, got {threshold}")
-    if not at_minutes or any(not (math.isfinite(m) and m > 0) for m in at_minutes):
+    if (not at_minutes and not at_steps) or any(not (math.isfinite(m) and m > 0) for m in at_minutes):
         raise UsageError("--at takes positive minutes, e.g. 1,5,20")
+    if any(not (math.isfinite(s) and s > 0) for s in at_steps):
+        raise UsageError("--at-steps takes positive millions of env steps, e.g. 1,2.5,5")
     runs = [load(p) for p in paths]
     grouped = group_runs(runs, groups)
-    text = table(grouped, threshold, sorted(at_minutes))
+    text = table(grouped, threshold, sorted(at_minutes), sorted(at_steps))
     if out:
         plot(grouped, out, threshold, "best" if metric == "best" else "ret", title)
     return text
