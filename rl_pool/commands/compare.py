@@ -52,17 +52,18 @@ class Run:
         """Best return so far at ``seconds`` of wall clock; None if the run had stopped well before it."""
         if self.duration < seconds - min(30.0, 0.05 * seconds):
             return None
-        k = int(np.searchsorted(self.seconds, seconds, side="right"))
-        if k == 0 or not np.isfinite(self.best[k - 1]):
-            return None
-        return float(self.best[k - 1])
+        return self._best_upto(self.seconds, seconds)
 
     def best_at_steps(self, steps: float) -> float | None:
         """Best return so far once ``steps`` env steps were taken (the last iteration at or before
         them); None if the run stopped more than 5% short of them."""
         if not len(self.steps) or not self.steps[-1] >= 0.95 * steps:
             return None
-        k = int(np.searchsorted(self.steps, steps, side="right"))
+        return self._best_upto(self.steps, steps)
+
+    def _best_upto(self, axis: np.ndarray, x: float) -> float | None:
+        """Best so far at the last iteration whose ``axis`` value (seconds or env steps) is <= ``x``."""
+        k = int(np.searchsorted(axis, x, side="right"))
         if k == 0 or not np.isfinite(self.best[k - 1]):
             return None
         return float(self.best[k - 1])
@@ -190,8 +191,10 @@ def table(groups: dict[str, list[Run]], threshold: float | None, at_minutes, at_
     marks = [m for m in at_minutes if m * 60 <= longest + min(30.0, 3.0 * m)]
     if not marks and not at_steps:
         marks = list(at_minutes[:1])
-    head = ["run", "iterations", "minutes", "best"] + [f"best at {m:g} min" for m in marks]
-    head += [f"best at {s:g} M steps" for s in at_steps]
+    # (header, best so far of a run at that mark): wall-clock marks, then env-step marks
+    cols = [(f"best at {m:g} min", lambda r, m=m: r.best_at(60 * m)) for m in marks]
+    cols += [(f"best at {s:g} M steps", lambda r, s=s: r.best_at_steps(1e6 * s)) for s in at_steps]
+    head = ["run", "iterations", "minutes", "best"] + [h for h, _ in cols]
     if threshold is not None:
         head += [f"time to {threshold:g} (s)", f"env steps to {threshold:g} (M)"]
     rows = []
@@ -200,8 +203,7 @@ def table(groups: dict[str, list[Run]], threshold: float | None, at_minutes, at_
             cells = [r.name if r.name == label or len(runs) == 1 else f"{label}/{r.name}",
                      str(len(r.seconds)), _fmt(r.duration, 1, 60.0),
                      _fmt(float(np.nanmax(r.best)) if np.isfinite(r.best).any() else None, 1)]
-            cells += [_fmt(r.best_at(60 * m)) for m in marks]
-            cells += [_fmt(r.best_at_steps(1e6 * s)) for s in at_steps]
+            cells += [_fmt(at(r)) for _, at in cols]
             if threshold is not None:
                 t, s = r.reach(threshold)
                 cells += [_fmt(t, 0), _fmt(s, 2, 1e6)]
@@ -211,8 +213,7 @@ def table(groups: dict[str, list[Run]], threshold: float | None, at_minutes, at_
             cells = [f"{label}: median [min, max]", "", "",
                      _fmt_spread(_spread([float(np.nanmax(r.best)) if np.isfinite(r.best).any() else None
                                           for r in runs]), of=n)]
-            cells += [_fmt_spread(_spread([r.best_at(60 * m) for r in runs]), of=n) for m in marks]
-            cells += [_fmt_spread(_spread([r.best_at_steps(1e6 * s) for r in runs]), of=n) for s in at_steps]
+            cells += [_fmt_spread(_spread([at(r) for r in runs]), of=n) for _, at in cols]
             if threshold is not None:
                 reach = [r.reach(threshold) for r in runs]
                 cells += [_fmt_spread(_spread([t for t, _ in reach]), 0, of=n),
