@@ -43,6 +43,9 @@ class PoolConfig:
     baseline: str = opt("time", "baseline: leave-one-out time-indexed mean return, a cross-fitted linear "
                                 "function of the state (observation, its square, time), or none",
                         ("time", "linear", "none"))
+    gae_lambda: float = opt(1.0, "lambda of generalised advantage estimation, with the baseline as the value "
+                                 "function (1: the return-to-go minus the baseline; below 1: less variance, "
+                                 "some bias)", added=True)
     optimizer: str = opt("adam", "step-size rule: Adam, or fixed-length normalised gradient", ("adam", "normalized"))
     policy: str = opt("linear", "policy network: linear in the normalised observation, or an MLP",
                       ("linear", "mlp"))
@@ -125,6 +128,8 @@ class PoolConfig:
                 f"--train-episodes ({self.train_episodes}) must be a multiple of --batch-episodes ({self.batch_episodes})")
         if not (math.isfinite(self.gamma) and 0.0 <= self.gamma <= 1.0):
             raise UsageError(f"--gamma must be in [0, 1], got {self.gamma}")
+        if not (math.isfinite(self.gae_lambda) and 0.0 <= self.gae_lambda <= 1.0):
+            raise UsageError(f"--gae-lambda must be in [0, 1], got {self.gae_lambda}")
         if self.seed < 0:
             raise UsageError(f"--seed must be >= 0, got {self.seed}")
         for f in fields(self):

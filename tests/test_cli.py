@@ -141,6 +141,7 @@ BAD = [
     (["--eval-episodes", -1], "--eval-episodes must be a positive"),
     (["--train-episodes", 5, "--batch-episodes", 2], "multiple of"),
     (["--gamma", 1.5], "--gamma"),
+    (["--gae-lambda", -0.1], "--gae-lambda must be in [0, 1]"),
     (["--env-kwargs", "[1, 2]"], "JSON object"),
     (["--learning-rate", "fast"], "invalid float"),
     (["--policy", "mlp", "--hidden", "64x64"], "hidden sizes must be comma-separated integers"),

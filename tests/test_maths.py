@@ -236,6 +236,51 @@ def test_linear_baseline_is_fitted_on_the_other_episodes_and_finds_a_linear_retu
         returns.advantages(g, mask, 1.0, "linear")
 
 
+def _loop_gae(r, v, gamma, lam):
+    """GAE of one episode written out as the double sum: sum_k (gamma lam)^k delta_{t+k}."""
+    n = len(r)
+    nxt = [v[t + 1] if t + 1 < n else 0.0 for t in range(n)]
+    delta = [r[t] + gamma * nxt[t] - v[t] for t in range(n)]
+    return [sum((gamma * lam) ** (k - t) * delta[k] for k in range(t, n)) for t in range(n)]
+
+
+@pytest.mark.parametrize("gamma,lam", [(1.0, 0.95), (0.99, 0.9), (0.99, 0.0), (0.5, 1.0)])
+def test_gae_matches_the_double_sum_per_episode(gamma, lam):
+    rng = np.random.default_rng(8)
+    _, mask, _ = _ragged_batch(rng)
+    rewards = rng.normal(size=mask.shape) * 2 + 100.0 * (1 - mask)  # junk past the end must not count
+    values = rng.normal(size=mask.shape) + 50.0 * (1 - mask)
+    got = returns.gae(rewards, mask, values, gamma, lam)
+    for b in range(mask.shape[0]):
+        n = int(mask[b].sum())
+        np.testing.assert_allclose(got[b, :n], _loop_gae(rewards[b, :n], values[b, :n], gamma, lam),
+                                   rtol=1e-10, atol=1e-10)
+        assert np.all(got[b, n:] == 0)
+
+
+def test_gae_at_lambda_one_is_the_return_minus_the_baseline():
+    rng = np.random.default_rng(9)
+    _, mask, obs = _ragged_batch(rng, B=8, T=30)
+    rewards = rng.normal(size=mask.shape)
+    for gamma in (1.0, 0.97):
+        g = returns.discounted_returns(rewards, mask, gamma)
+        b = returns.linear_baseline(g, mask, obs)
+        np.testing.assert_allclose(returns.gae(rewards, mask, b, gamma, 1.0), (g - b) * mask, atol=1e-9)
+        # lam = 1 is the plain difference exactly (pools made before lambda replay bit for bit)
+        plain = (g - b) * mask
+        np.testing.assert_array_equal(returns.advantages(rewards, mask, gamma, "linear", obs, lam=1.0),
+                                      plain / plain[mask > 0].std() * mask)
+        low = returns.advantages(rewards, mask, gamma, "linear", obs, lam=0.9)
+        want = returns.gae(rewards, mask, b, gamma, 0.9)
+        np.testing.assert_allclose(low, want / want[mask > 0].std() * mask, rtol=1e-12)
+    # lam = 0: one-step temporal differences with the time baseline as the value
+    g = returns.discounted_returns(rewards, mask, 1.0)
+    b = returns.time_baseline(g, mask)
+    nxt = np.concatenate([b[:, 1:], np.zeros((b.shape[0], 1))], axis=1)
+    td = (rewards + nxt - b) * mask
+    np.testing.assert_allclose(returns.gae(rewards, mask, b, 1.0, 0.0), td, atol=1e-12)
+
+
 def test_advantages_unit_std_on_valid_steps():
     rng = np.random.default_rng(4)
     rewards = rng.normal(size=(5, 20))

@@ -110,7 +110,7 @@ def train(agent: Agent, envs, cfg: PoolConfig, lr: float, member: int, iteration
         x = normalizer.normalize(norm, batch.obs)
         # The shift (e.g. a survival bonus) only shapes training; returns reported stay the env's.
         rewards = batch.rewards - cfg.reward_shift * batch.mask if cfg.reward_shift else batch.rewards
-        adv = returns.advantages(rewards, batch.mask, cfg.gamma, cfg.baseline, x)
+        adv = returns.advantages(rewards, batch.mask, cfg.gamma, cfg.baseline, x, cfg.gae_lambda)
         params, opt, gnorm = learner.update(params, opt, x, batch.u, adv, batch.mask, lr,
                                             cfg.optimizer, spec)
         norm = normalizer.update(norm, batch.obs[batch.mask > 0])

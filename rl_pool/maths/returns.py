@@ -91,21 +91,48 @@ def linear_baseline(returns: np.ndarray, mask: np.ndarray, obs: np.ndarray, reg:
     return out * mask
 
 
+def gae(rewards: np.ndarray, mask: np.ndarray, values: np.ndarray, gamma: float, lam: float) -> np.ndarray:
+    """Generalised advantage estimates ``[B, T]`` (Schulman et al. 2016): ``sum_{k >= 0} (gamma
+    lam)^k delta_{t+k}`` with ``delta_t = r_t + gamma V_{t+1} - V_t`` and ``V = 0`` after an
+    episode's last step.
+
+    ``values`` estimate the (discounted) return-to-go of the same episodes, so the value after the
+    last step is 0 whether the episode ended or hit its time limit. With ``lam = 1`` the sum
+    telescopes to the return-to-go minus ``values``; below 1 the advantage of a step leans on the
+    value of the steps after it instead of their sampled rewards: less variance, some bias.
+    """
+    mask = np.asarray(mask, dtype=np.float64)
+    r = np.asarray(rewards, dtype=np.float64) * mask
+    v = np.asarray(values, dtype=np.float64) * mask
+    v_next = np.zeros_like(v)
+    v_next[:, :-1] = v[:, 1:]
+    delta = (r + gamma * v_next - v) * mask
+    out = np.empty_like(delta)
+    acc = np.zeros(delta.shape[0])
+    for t in range(delta.shape[1] - 1, -1, -1):  # padding has delta 0, so nothing leaks back into an episode
+        acc = delta[:, t] + gamma * lam * acc
+        out[:, t] = acc
+    return out * mask
+
+
 def advantages(rewards: np.ndarray, mask: np.ndarray, gamma: float, baseline: str,
-               obs: np.ndarray | None = None) -> np.ndarray:
+               obs: np.ndarray | None = None, lam: float = 1.0) -> np.ndarray:
     """Returns minus baseline, scaled to unit standard deviation over the valid steps.
-    ``obs``: the batch's (normalised) observations ``[B, T, obs_dim]``, for ``linear``."""
+    ``obs``: the batch's (normalised) observations ``[B, T, obs_dim]``, for ``linear``. With ``lam``
+    below 1 the baseline serves as the value function of :func:`gae` instead."""
     g = discounted_returns(rewards, mask, gamma)
     if baseline == "time":
-        adv = g - time_baseline(g, mask)
+        b = time_baseline(g, mask)
     elif baseline == "linear":
         if obs is None:
             raise ValueError("the linear baseline needs the observations")
-        adv = g - linear_baseline(g, mask, obs)
+        b = linear_baseline(g, mask, obs)
     elif baseline == "none":
-        adv = g
+        b = np.zeros_like(g)
     else:
         raise ValueError(f"unknown baseline {baseline!r}")
+    # lam = 1 keeps the plain difference, bit for bit as pools made before lam existed
+    adv = g - b if lam >= 1.0 else gae(rewards, mask, b, gamma, lam)
     valid = mask > 0
     sd = adv[valid].std() if valid.any() else 0.0
     if sd > 1e-12:
