@@ -1,5 +1,7 @@
 """Pure maths against independent references (scipy, plain loops, finite differences)."""
 
+import dataclasses
+
 import numpy as np
 import pytest
 import scipy.special
@@ -413,3 +415,25 @@ def test_random_streams_common_for_evaluation_distinct_for_training():
     e3, _ = eval_streams(7, 3, 5)
     assert e3 == eval_streams(7, 3, 5)[0] and e3 != eval_streams(7, 4, 5)[0]
     assert not set(e3) & set(s0 + s1)  # evaluation episodes are not training episodes
+
+
+def test_gae_lambda_is_a_pool_setting_that_reaches_training_and_older_pools_read_as_one():
+    from rl_pool.config import PoolConfig
+    from rl_pool.errors import UsageError
+    from rl_pool.learning import envs, trainer
+
+    from .helpers import agent
+
+    d = PoolConfig().validate().to_json()
+    d.pop("gae_lambda")  # a pool made before the setting trained on the return minus the baseline
+    assert PoolConfig.from_json(d).gae_lambda == 1.0
+    for bad in (-0.1, 1.5, float("nan")):
+        with pytest.raises(UsageError, match="--gae-lambda"):
+            PoolConfig(gae_lambda=bad).validate()
+    cfg = PoolConfig(max_episode_steps=60, train_episodes=4, batch_episodes=4, baseline="linear").validate()
+    env_list = [envs.make(cfg.env, {"max_episode_steps": 60})[0] for _ in range(4)]
+    start = agent(3)
+    plain, again, low = (trainer.train(start, env_list, c, 0.05, 0, 1).agent
+                         for c in (cfg, cfg, dataclasses.replace(cfg, gae_lambda=0.8)))
+    assert all(np.array_equal(plain.params[n], again.params[n]) for n in plain.params)
+    assert not all(np.array_equal(plain.params[n], low.params[n]) for n in plain.params)
