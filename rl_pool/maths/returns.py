@@ -102,17 +102,11 @@ def gae(rewards: np.ndarray, mask: np.ndarray, values: np.ndarray, gamma: float,
     value of the steps after it instead of their sampled rewards: less variance, some bias.
     """
     mask = np.asarray(mask, dtype=np.float64)
-    r = np.asarray(rewards, dtype=np.float64) * mask
     v = np.asarray(values, dtype=np.float64) * mask
     v_next = np.zeros_like(v)
     v_next[:, :-1] = v[:, 1:]
-    delta = (r + gamma * v_next - v) * mask
-    out = np.empty_like(delta)
-    acc = np.zeros(delta.shape[0])
-    for t in range(delta.shape[1] - 1, -1, -1):  # padding has delta 0, so nothing leaks back into an episode
-        acc = delta[:, t] + gamma * lam * acc
-        out[:, t] = acc
-    return out * mask
+    delta = np.asarray(rewards, dtype=np.float64) * mask + gamma * v_next - v
+    return discounted_returns(delta, mask, gamma * lam)  # the same backward sum, with factor gamma lam
 
 
 def advantages(rewards: np.ndarray, mask: np.ndarray, gamma: float, baseline: str,
