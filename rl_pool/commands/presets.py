@@ -42,7 +42,8 @@ PRESETS: dict[str, dict] = {
     "humanoid": {"env": "Humanoid-v5", "gamma": 0.99, "selection": "branches", "revert_after": 20,
                  "eval_episodes": 10, "train_episodes": 40, "batch_episodes": 20, "policy": "mlp",
                  "hidden": "64,64", "init_shape": 20.0, "learning_rates": [0.001, 0.003]},
-    "humanoid-standup": {"env": "HumanoidStandup-v5", "eval_episodes": 5, "learning_rates": [0.003, 0.01]},
+    "humanoid-standup": {"env": "HumanoidStandup-v5", "gamma": 0.99, "baseline": "linear", "gae_lambda": 0.95,
+                         "eval_episodes": 5, "learning_rates": [0.003, 0.01]},
 }
 
 
