@@ -33,6 +33,10 @@ class PoolConfig:
     env: str = opt("Swimmer-v5", "gymnasium environment id (bounded Box actions)")
     env_kwargs: dict = field(default_factory=dict, metadata={
         "help": "JSON object of keyword arguments for gymnasium.make", "choices": None})
+    train_env_kwargs: dict = field(default_factory=dict, metadata={
+        "help": "JSON object of keyword arguments that training episodes add to --env-kwargs (e.g. a wider "
+                "reset_noise_scale); evaluation and selection keep --env-kwargs alone, the task itself",
+        "choices": None, "added": True})
     max_episode_steps: int = opt(0, "episode length (0: the environment's own limit)")
     pool_size: int = opt(1, "number of members N")
     train_episodes: int = opt(20, "training episodes per member per iteration")
@@ -138,6 +142,8 @@ class PoolConfig:
                 raise UsageError(f"--{f.name.replace('_', '-')} must be one of {', '.join(choices)}")
         if not isinstance(self.env_kwargs, dict):
             raise UsageError("--env-kwargs must be a JSON object")
+        if not isinstance(self.train_env_kwargs, dict):
+            raise UsageError("--train-env-kwargs must be a JSON object")
         if not math.isfinite(self.reward_shift):
             raise UsageError(f"--reward-shift must be a finite number, got {self.reward_shift}")
         if self.init_shape:

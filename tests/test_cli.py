@@ -143,6 +143,9 @@ BAD = [
     (["--gamma", 1.5], "--gamma"),
     (["--gae-lambda", -0.1], "--gae-lambda must be in [0, 1]"),
     (["--env-kwargs", "[1, 2]"], "JSON object"),
+    (["--train-env-kwargs", "3"], "JSON object"),
+    (["--train-env-kwargs", '{"no_such_option": 1}'], "cannot make environment"),
+    (["--train-env-kwargs", '{"max_episode_steps": 7}'], "training and evaluation must share them"),
     (["--learning-rate", "fast"], "invalid float"),
     (["--policy", "mlp", "--hidden", "64x64"], "hidden sizes must be comma-separated integers"),
     (["--policy", "mlp", "--hidden", "0,8"], "hidden sizes must be 1 to 8 layers"),
@@ -276,3 +279,20 @@ def test_a_merge_without_its_members_is_described_as_a_merge():
 
     assert status.describe({"winner": "merge", "merge": {"members": [3, 1]}}) == "a merge of members 3, 1"
     assert status.describe({"winner": "merge", "member": None}) == "a merge"  # best.json's record
+
+
+def test_training_env_kwargs_change_the_training_episodes_only(tmp_path):
+    """--train-env-kwargs: training runs the changed task, evaluation the task itself. Two one-member
+    pools, one with a control cost 10^6 times Swimmer's: the same first training actions score far
+    lower in it, while the initial agent (the parent both pools re-score on iteration 1's shared
+    episodes) scores the same in both, and the pool records the option."""
+    deps = {}
+    for name, extra in (("plain", []), ("costly", ["--train-env-kwargs", '{"ctrl_cost_weight": 100.0}'])):
+        d = tmp_path / name
+        rl_pool("train", "--pool-dir", d, "--iterations", 1, "--max-episode-steps", 40, "--train-episodes", 2,
+                "--eval-episodes", 2, "--quiet", *extra, check=0)
+        deps[name] = json.loads((d / "iterations/000001/member-000.json").read_text())
+    assert json.loads((tmp_path / "costly/pool.json").read_text())["train_env_kwargs"] == {"ctrl_cost_weight": 100.0}
+    assert deps["costly"]["parent_eval_returns"] == deps["plain"]["parent_eval_returns"]
+    assert deps["costly"]["train_return_mean"] < deps["plain"]["train_return_mean"] - 1.0
+    assert Agent.load(tmp_path / "costly/best.npz").meta.env_kwargs == {}  # the agent is for the task itself

@@ -49,6 +49,13 @@ def make_initial(cfg: PoolConfig):
         kwargs["max_episode_steps"] = cfg.max_episode_steps
     env, info = envs.make(cfg.env, kwargs)
     env.close()
+    if cfg.train_env_kwargs:  # the agent must fit both tasks: refuse here, before the pool is made
+        env, train = envs.make(cfg.env, dict(kwargs, **cfg.train_env_kwargs))
+        env.close()
+        shape = lambda i: (i.obs_dim, i.act_dim, tuple(i.low), tuple(i.high), i.max_episode_steps)  # noqa: E731
+        if shape(train) != shape(info):
+            raise UsageError("--train-env-kwargs changes the observations, actions or episode length of "
+                             f"{cfg.env}; training and evaluation must share them")
     cfg = dataclasses.replace(cfg, max_episode_steps=info.max_episode_steps)
     meta = AgentMeta(cfg.env, dict(cfg.env_kwargs), info.max_episode_steps, info.obs_dim, info.act_dim,
                      tuple(float(x) for x in info.low), tuple(float(x) for x in info.high), cfg.spec)
@@ -201,6 +208,9 @@ def _loop(paths: layout.Paths, cfg: PoolConfig, mc: MemberConfig, hb: heartbeat.
     like = deposits.load_selected_agent(paths, 0)
     kwargs = dict(cfg.env_kwargs, max_episode_steps=cfg.max_episode_steps)
     env_list = [envs.make(cfg.env, kwargs)[0] for _ in range(max(cfg.batch_episodes, cfg.eval_episodes))]
+    # Training episodes may run a changed task (--train-env-kwargs); evaluation always runs the task itself.
+    train_envs = ([envs.make(cfg.env, dict(kwargs, **cfg.train_env_kwargs))[0] for _ in range(cfg.batch_episodes)]
+                  if cfg.train_env_kwargs else env_list)
     liveness = heartbeat.Liveness(paths, mc.heartbeat_timeout)
     quorum = mc.quorum_for(cfg.pool_size)
     log.info("member %d of %d on %s, lr %g, from iteration %d to %d (quorum %d)",
@@ -230,7 +240,7 @@ def _loop(paths: layout.Paths, cfg: PoolConfig, mc: MemberConfig, hb: heartbeat.
                 start = deposits.load_selected_agent(paths, i - 1, prev, like=like)
                 hb.set(state="training", iteration=i)
                 scale = selection.rate_scale(prev)  # --rate-patience: the pool's share of every rate
-                tr = trainer.train(start, env_list, cfg, lr * scale, me, i)
+                tr = trainer.train(start, train_envs, cfg, lr * scale, me, i)
                 hb.update(state="evaluating")  # shown by the next periodic beat: one write less per iteration
                 ev = trainer.evaluate(tr.agent, env_list, cfg, i)
                 parent = {}
