@@ -207,10 +207,13 @@ def _loop(paths: layout.Paths, cfg: PoolConfig, mc: MemberConfig, hb: heartbeat.
     learner.enable_compilation_cache()
     like = deposits.load_selected_agent(paths, 0)
     kwargs = dict(cfg.env_kwargs, max_episode_steps=cfg.max_episode_steps)
-    env_list = [envs.make(cfg.env, kwargs)[0] for _ in range(max(cfg.batch_episodes, cfg.eval_episodes))]
-    # Training episodes may run a changed task (--train-env-kwargs); evaluation always runs the task itself.
+    # Training episodes may run a changed task (--train-env-kwargs) on envs of their own; evaluation
+    # always runs the task itself. Without the option one set of envs serves both.
+    apart = bool(cfg.train_env_kwargs)
+    n_eval = cfg.eval_episodes if apart else max(cfg.batch_episodes, cfg.eval_episodes)
+    env_list = [envs.make(cfg.env, kwargs)[0] for _ in range(n_eval)]
     train_envs = ([envs.make(cfg.env, dict(kwargs, **cfg.train_env_kwargs))[0] for _ in range(cfg.batch_episodes)]
-                  if cfg.train_env_kwargs else env_list)
+                  if apart else env_list)
     liveness = heartbeat.Liveness(paths, mc.heartbeat_timeout)
     quorum = mc.quorum_for(cfg.pool_size)
     log.info("member %d of %d on %s, lr %g, from iteration %d to %d (quorum %d)",
