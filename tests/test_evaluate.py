@@ -84,3 +84,10 @@ def test_replay_writes_an_animated_gif(trained, tmp_path):
         im.seek(k)
         frames.append(np.asarray(im.convert("RGB"), dtype=float))
     assert frames[0].std() > 0  # a rendered scene, not a blank image
+    # Swimmer steps 25 times a second: at 5 fps every 5th step is rendered, 0, 5, ..., 20
+    slow = tmp_path / "slow.gif"
+    proc = rl_pool("replay", trained, "--out", slow, "--steps", 20, "--width", 64, "--height", 48, "--fps", 5)
+    assert proc.returncode == 0, proc.stderr
+    im = Image.open(slow)
+    assert im.n_frames == 5 and im.info["duration"] == 200
+    assert "5 frames at 5.0 fps" in proc.stdout

@@ -48,6 +48,9 @@ def replay_path(target: str, out: str, steps: int = 0, seed: int = 0, fps: int =
     except Exception as exc:
         raise UsageError(f"cannot render {agent.meta.env} offscreen ({exc}); try MUJOCO_GL=osmesa") from None
     steps = steps or agent.meta.max_episode_steps
+    # The env runs at 1/dt steps per second; render every k-th step to play in real time at ``fps``.
+    stride = max(1, round((1.0 / env.dt) / fps))
+    real_fps = (1.0 / env.dt) / stride
     obs, _ = env.reset(seed=seed)
     frames = [env.render()]
     total, n = 0.0, 0
@@ -55,14 +58,11 @@ def replay_path(target: str, out: str, steps: int = 0, seed: int = 0, fps: int =
         obs, reward, terminated, _, _ = env.step(agent.act(obs))
         total += reward
         n += 1
-        frames.append(env.render())
+        if n % stride == 0:
+            frames.append(env.render())
         if terminated:
             break
     env.close()
-    # The env runs at 1/dt steps per second; keep every k-th frame to play in real time at ``fps``.
-    stride = max(1, round((1.0 / env.dt) / fps))
-    frames = frames[::stride]
-    real_fps = (1.0 / env.dt) / stride
     if ext == ".gif":
         from PIL import Image
 
