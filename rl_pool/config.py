@@ -22,6 +22,12 @@ PROTOCOL = 3  # 3: create-once decisions in .NAME.once/ (rl_pool.protocol.claim)
 READABLE_PROTOCOLS = (2, 3)
 
 
+def _sizes(text: str, what: str) -> tuple[int, ...]:
+    if not re.fullmatch(r"\d+(,\d+)*", text):
+        raise ValueError(f"{what} sizes must be comma-separated integers such as 64,64, got {text!r}")
+    return tuple(int(h) for h in text.split(","))
+
+
 def opt(default, help: str, choices=None, **kw):
     return field(default=default, metadata={"help": help, "choices": choices, **kw})
 
@@ -45,8 +51,11 @@ class PoolConfig:
     eval_mode: str = opt("mean", "evaluation actions: Beta mean or samples", ("mean", "sample"))
     gamma: float = opt(1.0, "discount factor (Swimmer needs ~1: 0.99 traps it near 40)")
     baseline: str = opt("time", "baseline: leave-one-out time-indexed mean return, a cross-fitted linear "
-                                "function of the state (observation, its square, time), or none",
-                        ("time", "linear", "none"))
+                                "function of the state (observation, its square, time), a value network "
+                                "learned beside the policy (--value-hidden), or none",
+                        ("time", "linear", "value", "none"))
+    value_hidden: str = opt("64,64", "hidden layer sizes of the value network of --baseline value, "
+                                     "comma-separated (tanh units)", added=True)
     gae_lambda: float = opt(1.0, "lambda of generalised advantage estimation, with the baseline as the value "
                                  "function (1: the return-to-go minus the baseline; below 1: less variance, "
                                  "some bias)", added=True)
@@ -102,13 +111,9 @@ class PoolConfig:
         """The policy this pool trains (:class:`rl_pool.maths.policy.PolicySpec`)."""
         from rl_pool.maths.policy import PolicySpec
 
-        if self.policy != "mlp":
-            hidden = ()
-        elif re.fullmatch(r"\d+(,\d+)*", self.hidden):
-            hidden = tuple(int(h) for h in self.hidden.split(","))
-        else:
-            raise ValueError(f"hidden sizes must be comma-separated integers such as 64,64, got {self.hidden!r}")
-        return PolicySpec(self.policy, hidden, self.link)
+        hidden = _sizes(self.hidden, "hidden") if self.policy == "mlp" else ()
+        value = _sizes(self.value_hidden, "value hidden") if self.baseline == "value" else ()
+        return PolicySpec(self.policy, hidden, self.link, value)
 
     @property
     def updates_per_iteration(self) -> int:
@@ -172,7 +177,7 @@ class PoolConfig:
         try:
             self.spec  # noqa: B018 (parses --hidden and checks the policy)
         except ValueError as exc:
-            raise UsageError(f"--policy/--hidden/--link: {exc}") from None
+            raise UsageError(f"--policy/--hidden/--link/--value-hidden: {exc}") from None
         return self
 
     def to_json(self) -> dict:

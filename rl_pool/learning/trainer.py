@@ -110,9 +110,13 @@ def train(agent: Agent, envs, cfg: PoolConfig, lr: float, member: int, iteration
         x = normalizer.normalize(norm, batch.obs)
         # The shift (e.g. a survival bonus) only shapes training; returns reported stay the env's.
         rewards = batch.rewards - cfg.reward_shift * batch.mask if cfg.reward_shift else batch.rewards
-        adv = returns.advantages(rewards, batch.mask, cfg.gamma, cfg.baseline, x, cfg.gae_lambda)
+        g = returns.discounted_returns(rewards, batch.mask, cfg.gamma)
+        # The value network (if any) as it stands before this batch: fitted on earlier ones only.
+        v = learner.values(params, x, spec) if spec.value else None
+        adv = returns.advantages(rewards, batch.mask, cfg.gamma, cfg.baseline, x, cfg.gae_lambda, v, g)
+        targets = returns.value_targets(g, batch.mask) if spec.value else None
         params, opt, gnorm = learner.update(params, opt, x, batch.u, adv, batch.mask, lr,
-                                            cfg.optimizer, spec)
+                                            cfg.optimizer, spec, targets)
         norm = normalizer.update(norm, batch.obs[batch.mask > 0])
         steps += batch.steps
         ep_returns.extend(float(r) for r in batch.returns)

@@ -6,6 +6,10 @@ For a batch of episodes padded to ``[B, T]`` the objective is
 
 with ``A`` the scaled advantages (returns minus baseline) and ``n`` the number
 of valid steps; its gradient is the REINFORCE estimate of the policy gradient.
+A policy with a value network (``--baseline value``) also descends the squared
+error of that network against its targets ``y`` (the standardised return-to-go),
+``J -= (1 / 2n) * sum_{b,t} mask[b,t] * (V(x[b,t], t / T) - y[b,t])^2``; the
+two parts share no parameters, so each network follows its own gradient.
 The whole batch goes through JAX in one call: rollouts stay in NumPy, and JAX
 never sees a single environment step.
 
@@ -70,19 +74,35 @@ def init_opt_state(params: dict) -> OptState:
                     {k: np.zeros_like(v) for k, v in params.items()}, 0.0)
 
 
-def objective(params, x, u, adv, mask, spec: policy.PolicySpec):
-    """Surrogate ``J`` above; ``x`` ``[B,T,obs]``, ``u`` ``[B,T,act]``, ``adv``/``mask`` ``[B,T]``."""
+def time_fraction(x, xp=np):
+    """``t / T`` for every step of a batch padded to the episode limit ``T`` (``x``: ``[B, T, obs]``)."""
+    T = x.shape[1]
+    return xp.broadcast_to(xp.arange(T) / T, x.shape[:2])
+
+
+def values(params, x, spec: policy.PolicySpec, xp=np):
+    """The value network's outputs ``[B, T]`` on a padded batch of normalised observations."""
+    return policy.value(params, x, time_fraction(x, xp), spec, xp)
+
+
+def objective(params, x, u, adv, mask, spec: policy.PolicySpec, targets=None):
+    """Surrogate ``J`` above; ``x`` ``[B,T,obs]``, ``u`` ``[B,T,act]``, ``adv``/``mask``/``targets``
+    ``[B,T]`` (``targets``: the value network's, needed when ``spec`` has one)."""
     logp = policy.log_prob_unit(params, x, u, spec, xp=jnp, gammaln=gammaln)
     n = jnp.maximum(mask.sum(), 1.0)
-    return (logp * adv * mask).sum() / n
+    j = (logp * adv * mask).sum() / n
+    if spec.value:
+        err = values(params, x, spec, jnp) - targets
+        j = j - 0.5 * (err * err * mask).sum() / n
+    return j
 
 
 policy_gradient = jax.jit(jax.grad(objective), static_argnames=("spec",))
 
 
 @partial(jax.jit, static_argnames=("optimizer", "spec"))
-def _update(params, m, v, t, x, u, adv, mask, lr, optimizer, spec):
-    g = jax.grad(objective)(params, x, u, adv, mask, spec)
+def _update(params, m, v, t, x, u, adv, mask, lr, optimizer, spec, targets):
+    g = jax.grad(objective)(params, x, u, adv, mask, spec, targets)
     leaves = jax.tree_util.tree_leaves(g)
     gnorm = jnp.sqrt(sum((leaf * leaf).sum() for leaf in leaves))
     tmap = jax.tree_util.tree_map
@@ -100,14 +120,19 @@ def _update(params, m, v, t, x, u, adv, mask, lr, optimizer, spec):
 
 
 def update(params: dict, opt: OptState, x, u, adv, mask, lr: float, optimizer: str,
-           spec: policy.PolicySpec):
-    """One gradient-ascent step on a batch; returns ``(params, opt_state, grad_norm)`` as NumPy."""
+           spec: policy.PolicySpec, targets=None):
+    """One gradient-ascent step on a batch; returns ``(params, opt_state, grad_norm)`` as NumPy.
+    ``targets``: what the value network learns (:func:`rl_pool.maths.returns.value_targets`),
+    when ``spec`` has one."""
     if optimizer not in OPTIMIZERS:
         raise ValueError(f"unknown optimizer {optimizer!r}")
     b, t_len = mask.shape
     if x.shape[:2] != (b, t_len) or u.shape[:2] != (b, t_len) or adv.shape != (b, t_len):
         raise ValueError(f"batch shapes disagree: x {x.shape}, u {u.shape}, adv {adv.shape}, mask {mask.shape}")
-    out = _update(params, opt.m, opt.v, opt.t, x, u, adv, mask, float(lr), optimizer, spec)
+    if spec.value and (targets is None or np.shape(targets) != (b, t_len)):
+        raise ValueError("a policy with a value network needs its targets, shaped like the mask")
+    out = _update(params, opt.m, opt.v, opt.t, x, u, adv, mask, float(lr), optimizer, spec,
+                  targets if spec.value else None)
     params, m, v, t, gnorm = jax.device_get(out)
     as_np = lambda d: {k: np.asarray(a) for k, a in d.items()}  # noqa: E731
     return as_np(params), OptState(as_np(m), as_np(v), float(t)), float(gnorm)

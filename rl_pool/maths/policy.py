@@ -10,6 +10,10 @@ observations ``x`` ``[..., obs_dim]`` to pre-activations ``z`` ``[..., 2A]``:
 * ``mlp``: ``h_0 = x``, ``h_{k+1} = tanh(h_k W_k + b_k)`` for each hidden
   layer, then ``z = h_L W_L + b_L``; arrays ``w0, b0, ..., wL, bL``.
 
+A spec with ``value`` hidden sizes also carries a state-value network (the learned baseline of
+``--baseline value``): the same tanh MLP on ``[x, t / T]`` (``t`` the step, ``T`` the episode
+limit) with one output, arrays ``v_w0, v_b0, ..., v_wL, v_bL``. It never touches the actions.
+
 The link turns ``z`` into shapes ``alpha_j = link(z_j) + 1`` and ``beta_j =
 link(z_{A+j}) + 1``, both >= 1 so every Beta is unimodal (no mass piling up
 at the bounds). ``exp`` (clamped at ``Z_MAX``) is the default: a linear step
@@ -36,6 +40,8 @@ EPS = 1e-6
 Z_MAX = 10.0
 
 KINDS = ("linear", "mlp")
+#: Names of the value network's arrays start with this.
+VALUE_PREFIX = "v_"
 LINKS = ("exp", "softplus")
 #: Seed-stream tag for initial weights, apart from every training and evaluation stream.
 _INIT_TAG = 7
@@ -50,6 +56,8 @@ class PolicySpec:
     kind: str = "linear"
     hidden: tuple[int, ...] = ()
     link: str = "exp"
+    #: hidden sizes of the state-value network (empty: none)
+    value: tuple[int, ...] = ()
 
     def __post_init__(self):
         if self.kind not in KINDS:
@@ -61,10 +69,17 @@ class PolicySpec:
             raise ValueError("a linear policy has no hidden layers")
         if self.kind == "mlp" and (not hidden or any(h < 1 or h > 4096 for h in hidden) or len(hidden) > 8):
             raise ValueError(f"mlp hidden sizes must be 1 to 8 layers of 1..4096 units, got {hidden}")
+        value = tuple(int(h) for h in self.value)
+        if value and (any(h < 1 or h > 4096 for h in value) or len(value) > 8):
+            raise ValueError(f"value hidden sizes must be 1 to 8 layers of 1..4096 units, got {value}")
         object.__setattr__(self, "hidden", hidden)
+        object.__setattr__(self, "value", value)
 
     def to_json(self) -> dict:
-        return {"kind": self.kind, "hidden": list(self.hidden), "link": self.link}
+        out = {"kind": self.kind, "hidden": list(self.hidden), "link": self.link}
+        if self.value:  # written only when there is one: agents without it keep their bytes
+            out["value"] = list(self.value)
+        return out
 
     @classmethod
     def from_json(cls, d) -> PolicySpec:
@@ -75,23 +90,32 @@ class PolicySpec:
             return cls("linear", (), "exp")
         if not isinstance(d, dict):
             raise ValueError(f"policy must be an object, got {d!r}")
-        return cls(str(d["kind"]), tuple(d.get("hidden", ())), str(d.get("link", "exp")))
+        return cls(str(d["kind"]), tuple(d.get("hidden", ())), str(d.get("link", "exp")),
+                   tuple(d.get("value", ())))
 
     def describe(self) -> str:
         body = "linear" if self.kind == "linear" else "mlp " + ",".join(map(str, self.hidden))
-        return f"{body} ({self.link} link)"
+        value = f", value mlp {','.join(map(str, self.value))}" if self.value else ""
+        return f"{body} ({self.link} link{value})"
 
 
 def param_shapes(spec: PolicySpec, obs_dim: int, act_dim: int) -> dict[str, tuple[int, ...]]:
-    """Every parameter's name and shape, in a fixed order."""
+    """Every parameter's name and shape, in a fixed order (the policy's, then the value network's)."""
     out = 2 * act_dim
     if spec.kind == "linear":
-        return {"w": (obs_dim + 1, out)}
-    sizes = [obs_dim, *spec.hidden, out]
+        shapes = {"w": (obs_dim + 1, out)}
+    else:
+        shapes = _mlp_shapes("", [obs_dim, *spec.hidden, out])
+    if spec.value:
+        shapes |= _mlp_shapes(VALUE_PREFIX, [obs_dim + 1, *spec.value, 1])
+    return shapes
+
+
+def _mlp_shapes(prefix: str, sizes: list[int]) -> dict[str, tuple[int, ...]]:
     shapes = {}
     for k in range(len(sizes) - 1):
-        shapes[f"w{k}"] = (sizes[k], sizes[k + 1])
-        shapes[f"b{k}"] = (sizes[k + 1],)
+        shapes[f"{prefix}w{k}"] = (sizes[k], sizes[k + 1])
+        shapes[f"{prefix}b{k}"] = (sizes[k + 1],)
     return shapes
 
 
@@ -115,15 +139,18 @@ def init_params(spec: PolicySpec, obs_dim: int, act_dim: int, seed: int = 0,
     variance is ``(high - low)^2 / (4 (2 shape + 1))``, which matters where
     the reward charges for large actions, as Ant's control cost does).
     Hidden layers draw ``N(0, 1/fan_in)`` weights (LeCun's scaling, which keeps
-    ``tanh`` units out of saturation) and zero biases.
+    ``tanh`` units out of saturation) and zero biases. A value network starts the same way,
+    its output layer at zero (drawn after the policy's, which stay as without it).
     """
     shapes = param_shapes(spec, obs_dim, act_dim)
     rng = np.random.Generator(np.random.PCG64(np.random.SeedSequence([int(seed), _INIT_TAG])))
     params = {}
     n_layers = len(spec.hidden) + 1
+    v_out = len(spec.value)
     for name, dims in shapes.items():
-        last = name in ("w", f"w{n_layers - 1}", f"b{n_layers - 1}")
-        if last or name.startswith("b"):
+        last = name in ("w", f"w{n_layers - 1}", f"b{n_layers - 1}",
+                        f"{VALUE_PREFIX}w{v_out}", f"{VALUE_PREFIX}b{v_out}")
+        if last or name.removeprefix(VALUE_PREFIX).startswith("b"):
             params[name] = np.zeros(dims)
         else:
             params[name] = rng.normal(0.0, 1.0 / math.sqrt(dims[0]), size=dims)
@@ -146,6 +173,16 @@ def preactivations(params: dict, x, spec: PolicySpec, xp=np):
     for k in range(n_layers - 1):
         h = xp.tanh(h @ params[f"w{k}"] + params[f"b{k}"])
     return h @ params[f"w{n_layers - 1}"] + params[f"b{n_layers - 1}"]
+
+
+def value(params: dict, x, t_frac, spec: PolicySpec, xp=np):
+    """The value network's output ``[...]`` for normalised observations ``x`` ``[..., obs_dim]`` at
+    steps ``t_frac`` ``[...]`` (the step over the episode limit)."""
+    h = xp.concatenate([x, t_frac[..., None]], axis=-1)
+    n_layers = len(spec.value) + 1
+    for k in range(n_layers - 1):
+        h = xp.tanh(h @ params[f"{VALUE_PREFIX}w{k}"] + params[f"{VALUE_PREFIX}b{k}"])
+    return (h @ params[f"{VALUE_PREFIX}w{n_layers - 1}"] + params[f"{VALUE_PREFIX}b{n_layers - 1}"])[..., 0]
 
 
 def softplus(z, xp=np):

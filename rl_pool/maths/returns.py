@@ -91,6 +91,42 @@ def linear_baseline(returns: np.ndarray, mask: np.ndarray, obs: np.ndarray, reg:
     return out * mask
 
 
+def _valid_moments(returns: np.ndarray, mask: np.ndarray):
+    """Per episode: the number of valid steps, and the sums of their return-to-go and its square."""
+    g = np.asarray(returns, dtype=np.float64) * mask
+    return mask.sum(axis=1), g.sum(axis=1), (g * g).sum(axis=1)
+
+
+def value_targets(returns: np.ndarray, mask: np.ndarray) -> np.ndarray:
+    """What the value network learns from a batch ``[B, T]``: the return-to-go standardised over the
+    batch's valid steps, ``(G - mean) / std`` (0 on padding; no scaling where the std is ~0). The
+    network then works in units near 1 whatever the task's reward scale, and follows the batch
+    statistics as the policy improves."""
+    mask = np.asarray(mask, dtype=np.float64)
+    n, s1, s2 = (x.sum() for x in _valid_moments(returns, mask))
+    if n <= 0:
+        return np.zeros_like(mask)
+    mean = s1 / n
+    sd = np.sqrt(max(s2 / n - mean * mean, 0.0))
+    y = np.asarray(returns, dtype=np.float64) - mean
+    return (y / sd if sd > 1e-12 else y) * mask
+
+
+def value_baseline(returns: np.ndarray, mask: np.ndarray, values: np.ndarray) -> np.ndarray:
+    """The learned state baseline ``[B, T]``: the value network's outputs ``values`` (standardised
+    units, :func:`value_targets`) put back in return units with the mean and std of the *other*
+    episodes' return-to-go. The network was fitted on earlier batches and the scale leaves each
+    episode out, so no episode's baseline sees its own actions; with one episode it is 0."""
+    mask = np.asarray(mask, dtype=np.float64)
+    n, s1, s2 = _valid_moments(returns, mask)
+    n_o, s1_o, s2_o = n.sum() - n, s1.sum() - s1, s2.sum() - s2
+    has = n_o > 0
+    mean = np.where(has, s1_o / np.maximum(n_o, 1), 0.0)
+    sd = np.where(has, np.sqrt(np.maximum(s2_o / np.maximum(n_o, 1) - mean * mean, 0.0)), 0.0)
+    b = mean[:, None] + sd[:, None] * np.asarray(values, dtype=np.float64)
+    return np.where(has[:, None], b, 0.0) * mask
+
+
 def gae(rewards: np.ndarray, mask: np.ndarray, values: np.ndarray, gamma: float, lam: float) -> np.ndarray:
     """Generalised advantage estimates ``[B, T]`` (Schulman et al. 2016): ``sum_{k >= 0} (gamma
     lam)^k delta_{t+k}`` with ``delta_t = r_t + gamma V_{t+1} - V_t`` and ``V = 0`` after an
@@ -110,17 +146,25 @@ def gae(rewards: np.ndarray, mask: np.ndarray, values: np.ndarray, gamma: float,
 
 
 def advantages(rewards: np.ndarray, mask: np.ndarray, gamma: float, baseline: str,
-               obs: np.ndarray | None = None, lam: float = 1.0) -> np.ndarray:
+               obs: np.ndarray | None = None, lam: float = 1.0, values: np.ndarray | None = None,
+               g: np.ndarray | None = None) -> np.ndarray:
     """Returns minus baseline, scaled to unit standard deviation over the valid steps.
-    ``obs``: the batch's (normalised) observations ``[B, T, obs_dim]``, for ``linear``. With ``lam``
-    below 1 the baseline serves as the value function of :func:`gae` instead."""
-    g = discounted_returns(rewards, mask, gamma)
+    ``obs``: the batch's (normalised) observations ``[B, T, obs_dim]``, for ``linear``; ``values``:
+    the value network's outputs ``[B, T]``, for ``value``; ``g``: the discounted returns, when the
+    caller has them already. With ``lam`` below 1 the baseline serves as the value function of
+    :func:`gae` instead."""
+    if g is None:
+        g = discounted_returns(rewards, mask, gamma)
     if baseline == "time":
         b = time_baseline(g, mask)
     elif baseline == "linear":
         if obs is None:
             raise ValueError("the linear baseline needs the observations")
         b = linear_baseline(g, mask, obs)
+    elif baseline == "value":
+        if values is None:
+            raise ValueError("the value baseline needs the value network's outputs")
+        b = value_baseline(g, mask, values)
     elif baseline == "none":
         b = np.zeros_like(g)
     else:
