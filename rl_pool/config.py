@@ -56,6 +56,9 @@ class PoolConfig:
                         ("time", "linear", "value", "none"))
     value_hidden: str = opt("64,64", "hidden layer sizes of the value network of --baseline value, "
                                      "comma-separated (tanh units)", added=True)
+    value_epochs: int = opt(1, "Adam steps the value network of --baseline value takes on each batch (the "
+                               "first beside the policy's step, the rest on the value network alone)",
+                            added=True)
     gae_lambda: float = opt(1.0, "lambda of generalised advantage estimation, with the baseline as the value "
                                  "function (1: the return-to-go minus the baseline; below 1: less variance, "
                                  "some bias)", added=True)
@@ -127,9 +130,11 @@ class PoolConfig:
         """Check every field; returns the config with derived defaults resolved (``batch_episodes`` 0)."""
         if self.batch_episodes == 0 and self.train_episodes >= 1:
             return dataclasses.replace(self, batch_episodes=min(10, self.train_episodes)).validate()
-        for name in ("pool_size", "train_episodes", "batch_episodes", "eval_episodes"):
+        for name in ("pool_size", "train_episodes", "batch_episodes", "eval_episodes", "value_epochs"):
             if getattr(self, name) < 1:
                 raise UsageError(f"--{name.replace('_', '-')} must be a positive integer, got {getattr(self, name)}")
+        if self.value_epochs > 1000:
+            raise UsageError(f"--value-epochs must be at most 1000, got {self.value_epochs}")
         if self.max_episode_steps < 0:
             raise UsageError(f"--max-episode-steps must be >= 0, got {self.max_episode_steps}")
         if self.train_episodes % self.batch_episodes:

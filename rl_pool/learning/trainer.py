@@ -117,6 +117,8 @@ def train(agent: Agent, envs, cfg: PoolConfig, lr: float, member: int, iteration
         targets = returns.value_targets(g, batch.mask) if spec.value else None
         params, opt, gnorm = learner.update(params, opt, x, batch.u, adv, batch.mask, lr,
                                             cfg.optimizer, spec, targets)
+        if spec.value and cfg.value_epochs > 1:
+            params, opt = learner.fit_value(params, opt, x, targets, batch.mask, lr, cfg.value_epochs - 1, spec)
         norm = normalizer.update(norm, batch.obs[batch.mask > 0])
         steps += batch.steps
         ep_returns.extend(float(r) for r in batch.returns)

@@ -119,6 +119,44 @@ def _update(params, m, v, t, x, u, adv, mask, lr, optimizer, spec, targets):
     return params, m, v, t, gnorm
 
 
+def value_loss(params, x, targets, mask, spec: policy.PolicySpec):
+    """``(1 / 2n) * sum mask * (V - y)^2``: the value network's part of ``-J``."""
+    err = values(params, x, spec, jnp) - targets
+    return 0.5 * (err * err * mask).sum() / jnp.maximum(mask.sum(), 1.0)
+
+
+@partial(jax.jit, static_argnames=("spec", "steps"))
+def _fit_value(params, m, v, t, x, targets, mask, lr, spec, steps):
+    names = [k for k in params if k.startswith(policy.VALUE_PREFIX)]
+    c1, c2 = 1.0 - ADAM_B1**t, 1.0 - ADAM_B2**t
+
+    def step(_, carry):
+        p, m_, v_ = carry
+        g = jax.grad(lambda q: value_loss(params | q, x, targets, mask, spec))(p)
+        m_ = {k: ADAM_B1 * m_[k] + (1.0 - ADAM_B1) * g[k] for k in names}
+        v_ = {k: ADAM_B2 * v_[k] + (1.0 - ADAM_B2) * g[k] * g[k] for k in names}
+        p = {k: p[k] - lr * (m_[k] / c1) / (jnp.sqrt(v_[k] / c2) + ADAM_EPS) for k in names}
+        return p, m_, v_
+
+    sub = lambda d: {k: d[k] for k in names}  # noqa: E731
+    return jax.lax.fori_loop(0, steps, step, (sub(params), sub(m), sub(v)))
+
+
+def fit_value(params: dict, opt: OptState, x, targets, mask, lr: float, steps: int,
+              spec: policy.PolicySpec):
+    """``steps`` more Adam steps on the value network alone, on the batch it has just stepped on
+    (more passes over each batch, as PPO's value epochs); the policy's arrays, their moments and
+    the step count are left as they are (the bias correction uses the count as it stands)."""
+    if steps < 1 or not spec.value:
+        return params, opt
+    if opt.t < 1:
+        raise ValueError("fit_value follows an update: the step count must be at least 1")
+    p, m, v = jax.device_get(_fit_value(params, opt.m, opt.v, opt.t, x, targets, mask, float(lr), spec,
+                                        int(steps)))
+    as_np = lambda d: {k: np.asarray(a) for k, a in d.items()}  # noqa: E731
+    return params | as_np(p), OptState(opt.m | as_np(m), opt.v | as_np(v), opt.t)
+
+
 def update(params: dict, opt: OptState, x, u, adv, mask, lr: float, optimizer: str,
            spec: policy.PolicySpec, targets=None):
     """One gradient-ascent step on a batch; returns ``(params, opt_state, grad_norm)`` as NumPy.
