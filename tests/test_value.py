@@ -161,6 +161,25 @@ def test_value_epochs_step_the_value_network_alone_as_adam_written_out():
                                                                                              mask, SPEC))
 
 
+def test_value_epochs_skip_the_padding_after_the_longest_episode(monkeypatch):
+    rng = np.random.default_rng(9)
+    params = _params(SPEC, seed=9)
+    x, targets = rng.normal(size=(3, 250, 3)), rng.normal(size=(3, 250))
+    mask = np.zeros((3, 250))
+    for b, n in enumerate((30, 120, 80)):
+        mask[b, :n] = 1
+    opt = learner.OptState({k: np.zeros_like(v) for k, v in params.items()},
+                           {k: np.zeros_like(v) for k, v in params.items()}, 1.0)
+    cut, _ = learner.fit_value(params, opt, x, targets, mask, 0.01, 3, SPEC)  # fitted on 200 steps
+    monkeypatch.setattr(learner, "FIT_BUCKET", 10**6)
+    whole, _ = learner.fit_value(params, opt, x, targets, mask, 0.01, 3, SPEC)  # on all 250
+    for k in params:
+        np.testing.assert_allclose(cut[k], whole[k], rtol=1e-9, atol=1e-13, err_msg=k)
+    # the time input is the step over the episode limit (250), not over the cut
+    np.testing.assert_allclose(learner.values(params, x[:, :200], SPEC, limit=250),
+                               learner.values(params, x, SPEC)[:, :200], rtol=1e-12)
+
+
 def test_agent_files_carry_the_value_network_and_agents_without_one_keep_their_bytes():
     meta = AgentMeta("Swimmer-v5", {}, 60, 8, 2, (-1.0, -1.0), (1.0, 1.0), SPEC)
     a = Agent.initial(meta, seed=1)

@@ -74,15 +74,15 @@ def init_opt_state(params: dict) -> OptState:
                     {k: np.zeros_like(v) for k, v in params.items()}, 0.0)
 
 
-def time_fraction(x, xp=np):
-    """``t / T`` for every step of a batch padded to the episode limit ``T`` (``x``: ``[B, T, obs]``)."""
-    T = x.shape[1]
-    return xp.broadcast_to(xp.arange(T) / T, x.shape[:2])
+def time_fraction(x, xp=np, limit: int | None = None):
+    """``t / T`` for every step of a batch ``x`` ``[B, T', obs]`` of episodes with limit ``T``
+    (``limit``; by default the batch's padded length ``T'``)."""
+    return xp.broadcast_to(xp.arange(x.shape[1]) / (limit or x.shape[1]), x.shape[:2])
 
 
-def values(params, x, spec: policy.PolicySpec, xp=np):
-    """The value network's outputs ``[B, T]`` on a padded batch of normalised observations."""
-    return policy.value(params, x, time_fraction(x, xp), spec, xp)
+def values(params, x, spec: policy.PolicySpec, xp=np, limit: int | None = None):
+    """The value network's outputs ``[B, T']`` on a padded batch of normalised observations."""
+    return policy.value(params, x, time_fraction(x, xp, limit), spec, xp)
 
 
 def objective(params, x, u, adv, mask, spec: policy.PolicySpec, targets=None):
@@ -119,20 +119,25 @@ def _update(params, m, v, t, x, u, adv, mask, lr, optimizer, spec, targets):
     return params, m, v, t, gnorm
 
 
-def value_loss(params, x, targets, mask, spec: policy.PolicySpec):
+def value_loss(params, x, targets, mask, spec: policy.PolicySpec, limit: int | None = None):
     """``(1 / 2n) * sum mask * (V - y)^2``: the value network's part of ``-J``."""
-    err = values(params, x, spec, jnp) - targets
+    err = values(params, x, spec, jnp, limit) - targets
     return 0.5 * (err * err * mask).sum() / jnp.maximum(mask.sum(), 1.0)
 
 
-@partial(jax.jit, static_argnames=("spec", "steps"))
-def _fit_value(params, m, v, t, x, targets, mask, lr, spec, steps):
+#: fit_value cuts a batch after its longest episode, rounded up to a multiple of this (a few shapes
+#: to compile, and short episodes do not pay for the padding to the limit)
+FIT_BUCKET = 100
+
+
+@partial(jax.jit, static_argnames=("spec", "steps", "limit"))
+def _fit_value(params, m, v, t, x, targets, mask, lr, spec, steps, limit):
     names = [k for k in params if k.startswith(policy.VALUE_PREFIX)]
     c1, c2 = 1.0 - ADAM_B1**t, 1.0 - ADAM_B2**t
 
     def step(_, carry):
         p, m_, v_ = carry
-        g = jax.grad(lambda q: value_loss(params | q, x, targets, mask, spec))(p)
+        g = jax.grad(lambda q: value_loss(params | q, x, targets, mask, spec, limit))(p)
         m_ = {k: ADAM_B1 * m_[k] + (1.0 - ADAM_B1) * g[k] for k in names}
         v_ = {k: ADAM_B2 * v_[k] + (1.0 - ADAM_B2) * g[k] * g[k] for k in names}
         p = {k: p[k] - lr * (m_[k] / c1) / (jnp.sqrt(v_[k] / c2) + ADAM_EPS) for k in names}
@@ -151,8 +156,11 @@ def fit_value(params: dict, opt: OptState, x, targets, mask, lr: float, steps: i
         return params, opt
     if opt.t < 1:
         raise ValueError("fit_value follows an update: the step count must be at least 1")
-    p, m, v = jax.device_get(_fit_value(params, opt.m, opt.v, opt.t, x, targets, mask, float(lr), spec,
-                                        int(steps)))
+    limit = mask.shape[1]
+    longest = int(np.flatnonzero(mask.any(axis=0))[-1]) + 1 if mask.any() else 1
+    cut = min(limit, -(-longest // FIT_BUCKET) * FIT_BUCKET)  # the steps after it are all padding
+    p, m, v = jax.device_get(_fit_value(params, opt.m, opt.v, opt.t, x[:, :cut], targets[:, :cut],
+                                        mask[:, :cut], float(lr), spec, int(steps), limit))
     as_np = lambda d: {k: np.asarray(a) for k, a in d.items()}  # noqa: E731
     return params | as_np(p), OptState(opt.m | as_np(m), opt.v | as_np(v), opt.t)
 
