@@ -56,9 +56,9 @@ class PoolConfig:
                         ("time", "linear", "value", "none"))
     value_hidden: str = opt("64,64", "hidden layer sizes of the value network of --baseline value, "
                                      "comma-separated (tanh units)", added=True)
-    value_epochs: int = opt(1, "Adam steps the value network of --baseline value takes on each batch (the "
-                               "first beside the policy's step, the rest on the value network alone)",
-                            added=True)
+    value_epochs: int = opt(10, "Adam steps the value network of --baseline value takes on each batch (the "
+                                "first beside the policy's step, the rest on the value network alone)",
+                            added=True, before=1)
     gae_lambda: float = opt(1.0, "lambda of generalised advantage estimation, with the baseline as the value "
                                  "function (1: the return-to-go minus the baseline; below 1: less variance, "
                                  "some bias)", added=True)
