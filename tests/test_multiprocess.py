@@ -295,6 +295,18 @@ def test_launch_runs_the_pool_and_reports(tmp_path):
     assert lrs == {0: pytest.approx(0.002), 1: 0.02}
 
 
+def test_a_resumed_launch_keeps_the_rates_the_pool_ran_with(tmp_path):
+    d = tmp_path / "resumed"
+    rl_pool("launch", "--pool-dir", d, "--iterations", 2, *SHORT, "--learning-rates", "0.003,0.02", "--quiet",
+            check=0)
+    again = rl_pool("launch", "--pool-dir", d, "--iterations", 3, "--quiet", check=0)  # no rates given
+    assert "m0=0.003, m1=0.02 (as the pool ran" in again.stdout
+    rl_pool("launch", "--pool-dir", d, "--iterations", 4, "--learning-rates", "0.001,0.01", "--quiet", check=0)
+    st = json.loads(rl_pool("status", d, "--json", check=0).stdout)
+    lrs = [{m["member"]: m["learning_rate"] for m in h["members"]} for h in st["history"]]
+    assert lrs == [{0: 0.003, 1: 0.02}] * 3 + [{0: 0.001, 1: 0.01}]  # rates given on a resume still win
+
+
 def test_member_that_falls_behind_rejoins_the_current_iteration(tmp_path):
     """A member frozen (SIGSTOP) while the pool goes on skips the decided iterations when it wakes."""
     d = tmp_path / "frozen"

@@ -35,6 +35,33 @@ def default_learning_rates(pool_size: int, base: float) -> list[float]:
     return [base * DEFAULT_RATIO] + [base] * (pool_size - 1)
 
 
+#: How many of the last decided iterations a resume looks through for a member's deposit.
+RESUME_LOOKBACK = 20
+
+
+def resumed_learning_rates(paths: layout.Paths, pool_size: int) -> list[float] | None:
+    """The learning rate each member trained at in the pool's last decided iterations (its latest
+    signed deposit among them), or None when the pool has not run yet or a member has no such
+    deposit. A launch that resumes a pool without rates goes on with these instead of the
+    default pair, so a pool started with a preset's rates (or ones given then) keeps them."""
+    from rl_pool.protocol import deposits
+
+    last = deposits.last_selected(paths)
+    rates: list[float] = []
+    for m in range(pool_size):
+        for i in range(last, max(last - RESUME_LOOKBACK, 0), -1):
+            try:
+                lr = deposits.read_metrics(paths, i, m).get("learning_rate")
+            except ValueError:
+                continue
+            if isinstance(lr, (int, float)) and not isinstance(lr, bool) and lr > 0:
+                rates.append(float(lr))
+                break
+        else:
+            return None
+    return rates
+
+
 def _flag(name: str) -> str:
     return "--" + name.replace("_", "-")
 
@@ -63,6 +90,11 @@ def launch(pool_dir: str, requested: dict, member_opts: dict, learning_rates: li
     for m, lr in enumerate(lrs):
         MemberConfig(**(member_opts | {"member": m, "learning_rate": lr})).validate(n)
     cfg = pool.open_pool(paths, requested, make_initial, key_file=member_opts.get("key_file") or None)  # refuses a mismatched pool before any spawn
+    ran = resumed_learning_rates(paths, n) if learning_rates is None and base_lr is None else None
+    if ran is not None:
+        lrs = ran  # a resumed pool goes on at the rates it ran with (a preset's, or ones given then)
+        for m, lr in enumerate(lrs):
+            MemberConfig(**(member_opts | {"member": m, "learning_rate": lr})).validate(n)
 
     procs = []
     started = time.time()
@@ -81,7 +113,8 @@ def launch(pool_dir: str, requested: dict, member_opts: dict, learning_rates: li
                 procs.append(subprocess.Popen(cmd, stdout=out, stderr=subprocess.STDOUT,
                                               stdin=subprocess.DEVNULL, env=env, start_new_session=True))
         _say(f"launched {n} members on {cfg.env} in {paths.root}; learning rates "
-             + ", ".join(f"m{m}={lr:g}" for m, lr in enumerate(lrs)))
+             + ", ".join(f"m{m}={lr:g}" for m, lr in enumerate(lrs))
+             + (" (as the pool ran; give --learning-rates for others)" if ran is not None else ""))
         codes = _watch(paths, procs, quiet, interval, started, target)
     except KeyboardInterrupt:
         interrupted = True
