@@ -179,3 +179,16 @@ def deposit(paths, i, m, ret, seed=None, parent=None, parent_sha=None):
         prev = deposits.read_selected(paths, i - 1)
         extra = {"parent_eval_return": parent, "parent_sha256": parent_sha or prev["agent_sha256"]}
     return deposits.deposit(paths, i, m, agent(m if seed is None else seed), {"eval_return": ret, **extra})
+
+
+def finite_differences(J, params: dict, h: float = 1e-6) -> dict:
+    """Central differences of the scalar function ``J`` of named arrays, element by element."""
+    out = {}
+    for name, w in params.items():
+        fd = np.zeros_like(w)
+        for idx in np.ndindex(w.shape):
+            e = np.zeros_like(w)
+            e[idx] = h
+            fd[idx] = (J(params | {name: w + e}) - J(params | {name: w - e})) / (2 * h)
+        out[name] = fd
+    return out

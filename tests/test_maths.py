@@ -9,6 +9,8 @@ import scipy.stats
 
 from rl_pool.maths import learner, normalizer, policy, returns
 
+from .helpers import finite_differences
+
 
 def test_beta_log_prob_matches_scipy():
     rng = np.random.default_rng(0)
@@ -332,13 +334,7 @@ def test_policy_gradient_matches_finite_differences(spec):
 
     g = learner.policy_gradient(params, x, u, adv, mask, spec)
     assert set(g) == set(params)
-    h = 1e-6
-    for name, w in params.items():
-        fd = np.zeros_like(w)
-        for idx in np.ndindex(w.shape):
-            e = np.zeros_like(w)
-            e[idx] = h
-            fd[idx] = (J(params | {name: w + e}) - J(params | {name: w - e})) / (2 * h)
+    for name, fd in finite_differences(J, params).items():
         np.testing.assert_allclose(np.asarray(g[name]), fd, rtol=1e-6, atol=1e-8, err_msg=name)
 
 

@@ -16,6 +16,7 @@ from rl_pool.maths import learner, policy, returns
 from rl_pool.maths.agent import Agent, AgentMeta
 
 from .conftest import ROOT, SHORT, rl_pool
+from .helpers import finite_differences
 
 SPEC = policy.PolicySpec("mlp", (5,), "exp", (6, 4))
 LINEAR_SPEC = policy.PolicySpec("linear", (), "exp", (3,))
@@ -117,13 +118,7 @@ def test_gradient_with_a_value_network_matches_finite_differences():
         return ((logp * adv * mask).sum() - 0.5 * (err * err * mask).sum()) / mask.sum()
 
     g = learner.policy_gradient(params, x, u, adv, mask, SPEC, targets)
-    h = 1e-6
-    for name, w in params.items():
-        fd = np.zeros_like(w)
-        for idx in np.ndindex(w.shape):
-            e = np.zeros_like(w)
-            e[idx] = h
-            fd[idx] = (J(params | {name: w + e}) - J(params | {name: w - e})) / (2 * h)
+    for name, fd in finite_differences(J, params).items():
         np.testing.assert_allclose(np.asarray(g[name]), fd, rtol=1e-6, atol=1e-8, err_msg=name)
     with pytest.raises(ValueError, match="targets"):
         learner.update(params, learner.init_opt_state(params), x, u, adv, mask, 0.1, "adam", SPEC)
