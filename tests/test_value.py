@@ -133,19 +133,20 @@ def test_value_epochs_step_the_value_network_alone_as_adam_written_out():
     opt = learner.OptState({k: rng.normal(size=v.shape) * 0.01 for k, v in params.items()},
                            {k: rng.uniform(0, 0.01, size=v.shape) for k, v in params.items()}, 3.0)
     p1, opt1 = learner.fit_value(params, opt, x, targets, mask, 0.02, 4, SPEC)
-    # reference: Adam by hand on the gradient of the objective with no advantage (minus the value
-    # loss; checked against finite differences above), the step count held at 3
+    # reference: Adam by hand up the gradient of the objective with no advantage (minus the value
+    # loss; checked against finite differences above), as the combined step goes, so the moments
+    # it leaves keep their sign; the step count held at 3
     p, m, v = dict(params), dict(opt.m), dict(opt.v)
     zero = np.zeros((3, 4))
     for _ in range(4):
-        g = {k: -np.asarray(a) for k, a in learner.policy_gradient(p, x, np.full((3, 4, 2), 0.5), zero, mask,
-                                                                    SPEC, targets).items()}
+        g = {k: np.asarray(a) for k, a in learner.policy_gradient(p, x, np.full((3, 4, 2), 0.5), zero, mask,
+                                                                   SPEC, targets).items()}
         for k in params:
             if not k.startswith("v_"):
                 continue
             m[k] = 0.9 * m[k] + 0.1 * g[k]
             v[k] = 0.999 * v[k] + 0.001 * g[k] * g[k]
-            p[k] = p[k] - 0.02 * (m[k] / (1 - 0.9**3)) / (np.sqrt(v[k] / (1 - 0.999**3)) + learner.ADAM_EPS)
+            p[k] = p[k] + 0.02 * (m[k] / (1 - 0.9**3)) / (np.sqrt(v[k] / (1 - 0.999**3)) + learner.ADAM_EPS)
     for k in params:
         np.testing.assert_allclose(p1[k], p[k], rtol=1e-10, atol=1e-14, err_msg=k)
         np.testing.assert_allclose(opt1.m[k], m[k], rtol=1e-10, atol=1e-14, err_msg=k)

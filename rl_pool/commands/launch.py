@@ -90,11 +90,10 @@ def launch(pool_dir: str, requested: dict, member_opts: dict, learning_rates: li
     for m, lr in enumerate(lrs):
         MemberConfig(**(member_opts | {"member": m, "learning_rate": lr})).validate(n)
     cfg = pool.open_pool(paths, requested, make_initial, key_file=member_opts.get("key_file") or None)  # refuses a mismatched pool before any spawn
+    # a resumed pool goes on at the rates it ran with (a preset's, or ones given then); each was
+    # validated by the member that signed the deposit it comes from
     ran = resumed_learning_rates(paths, n) if learning_rates is None and base_lr is None else None
-    if ran is not None:
-        lrs = ran  # a resumed pool goes on at the rates it ran with (a preset's, or ones given then)
-        for m, lr in enumerate(lrs):
-            MemberConfig(**(member_opts | {"member": m, "learning_rate": lr})).validate(n)
+    lrs = ran or lrs
 
     procs = []
     started = time.time()

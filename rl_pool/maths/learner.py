@@ -85,6 +85,12 @@ def values(params, x, spec: policy.PolicySpec, xp=np, limit: int | None = None):
     return policy.value(params, x, time_fraction(x, xp, limit), spec, xp)
 
 
+def value_loss(params, x, targets, mask, spec: policy.PolicySpec, limit: int | None = None):
+    """``(1 / 2n) * sum mask * (V - y)^2``: the value network's part of ``-J``."""
+    err = values(params, x, spec, jnp, limit) - targets
+    return 0.5 * (err * err * mask).sum() / jnp.maximum(mask.sum(), 1.0)
+
+
 def objective(params, x, u, adv, mask, spec: policy.PolicySpec, targets=None):
     """Surrogate ``J`` above; ``x`` ``[B,T,obs]``, ``u`` ``[B,T,act]``, ``adv``/``mask``/``targets``
     ``[B,T]`` (``targets``: the value network's, needed when ``spec`` has one)."""
@@ -92,12 +98,25 @@ def objective(params, x, u, adv, mask, spec: policy.PolicySpec, targets=None):
     n = jnp.maximum(mask.sum(), 1.0)
     j = (logp * adv * mask).sum() / n
     if spec.value:
-        err = values(params, x, spec, jnp) - targets
-        j = j - 0.5 * (err * err * mask).sum() / n
+        j = j - value_loss(params, x, targets, mask, spec)
     return j
 
 
 policy_gradient = jax.jit(jax.grad(objective), static_argnames=("spec",))
+
+
+def _adam_ascent(params, m, v, g, t, lr):
+    """One Adam step up the gradient ``g`` (named arrays), bias-corrected for step count ``t``."""
+    tmap = jax.tree_util.tree_map
+    m = tmap(lambda m_, g_: ADAM_B1 * m_ + (1.0 - ADAM_B1) * g_, m, g)
+    v = tmap(lambda v_, g_: ADAM_B2 * v_ + (1.0 - ADAM_B2) * g_ * g_, v, g)
+    c1, c2 = 1.0 - ADAM_B1**t, 1.0 - ADAM_B2**t
+    params = tmap(lambda p_, m_, v_: p_ + lr * (m_ / c1) / (jnp.sqrt(v_ / c2) + ADAM_EPS), params, m, v)
+    return params, m, v
+
+
+def _as_numpy(tree: dict) -> dict:
+    return {k: np.asarray(a) for k, a in tree.items()}
 
 
 @partial(jax.jit, static_argnames=("optimizer", "spec"))
@@ -105,24 +124,13 @@ def _update(params, m, v, t, x, u, adv, mask, lr, optimizer, spec, targets):
     g = jax.grad(objective)(params, x, u, adv, mask, spec, targets)
     leaves = jax.tree_util.tree_leaves(g)
     gnorm = jnp.sqrt(sum((leaf * leaf).sum() for leaf in leaves))
-    tmap = jax.tree_util.tree_map
     if optimizer == "adam":
         t = t + 1.0
-        m = tmap(lambda m_, g_: ADAM_B1 * m_ + (1.0 - ADAM_B1) * g_, m, g)
-        v = tmap(lambda v_, g_: ADAM_B2 * v_ + (1.0 - ADAM_B2) * g_ * g_, v, g)
-        c1, c2 = 1.0 - ADAM_B1**t, 1.0 - ADAM_B2**t
-        params = tmap(lambda p_, m_, v_: p_ + lr * (m_ / c1) / (jnp.sqrt(v_ / c2) + ADAM_EPS),
-                      params, m, v)
+        params, m, v = _adam_ascent(params, m, v, g, t, lr)
     else:
-        params = tmap(lambda p_, g_: p_ + lr * g_ / (gnorm + 1e-12), params, g)
+        params = jax.tree_util.tree_map(lambda p_, g_: p_ + lr * g_ / (gnorm + 1e-12), params, g)
         t = t + 1.0
     return params, m, v, t, gnorm
-
-
-def value_loss(params, x, targets, mask, spec: policy.PolicySpec, limit: int | None = None):
-    """``(1 / 2n) * sum mask * (V - y)^2``: the value network's part of ``-J``."""
-    err = values(params, x, spec, jnp, limit) - targets
-    return 0.5 * (err * err * mask).sum() / jnp.maximum(mask.sum(), 1.0)
 
 
 #: fit_value cuts a batch after its longest episode, rounded up to a multiple of this (a few shapes
@@ -133,15 +141,11 @@ FIT_BUCKET = 100
 @partial(jax.jit, static_argnames=("spec", "steps", "limit"))
 def _fit_value(params, m, v, t, x, targets, mask, lr, spec, steps, limit):
     names = [k for k in params if k.startswith(policy.VALUE_PREFIX)]
-    c1, c2 = 1.0 - ADAM_B1**t, 1.0 - ADAM_B2**t
 
     def step(_, carry):
-        p, m_, v_ = carry
-        g = jax.grad(lambda q: value_loss(params | q, x, targets, mask, spec, limit))(p)
-        m_ = {k: ADAM_B1 * m_[k] + (1.0 - ADAM_B1) * g[k] for k in names}
-        v_ = {k: ADAM_B2 * v_[k] + (1.0 - ADAM_B2) * g[k] * g[k] for k in names}
-        p = {k: p[k] - lr * (m_[k] / c1) / (jnp.sqrt(v_[k] / c2) + ADAM_EPS) for k in names}
-        return p, m_, v_
+        # up the gradient of -loss, as the objective's step: the moments keep one sign convention
+        g = jax.grad(lambda q: -value_loss(params | q, x, targets, mask, spec, limit))(carry[0])
+        return _adam_ascent(*carry, g, t, lr)
 
     sub = lambda d: {k: d[k] for k in names}  # noqa: E731
     return jax.lax.fori_loop(0, steps, step, (sub(params), sub(m), sub(v)))
@@ -161,8 +165,7 @@ def fit_value(params: dict, opt: OptState, x, targets, mask, lr: float, steps: i
     cut = min(limit, -(-longest // FIT_BUCKET) * FIT_BUCKET)  # the steps after it are all padding
     p, m, v = jax.device_get(_fit_value(params, opt.m, opt.v, opt.t, x[:, :cut], targets[:, :cut],
                                         mask[:, :cut], float(lr), spec, int(steps), limit))
-    as_np = lambda d: {k: np.asarray(a) for k, a in d.items()}  # noqa: E731
-    return params | as_np(p), OptState(opt.m | as_np(m), opt.v | as_np(v), opt.t)
+    return params | _as_numpy(p), OptState(opt.m | _as_numpy(m), opt.v | _as_numpy(v), opt.t)
 
 
 def update(params: dict, opt: OptState, x, u, adv, mask, lr: float, optimizer: str,
@@ -180,5 +183,4 @@ def update(params: dict, opt: OptState, x, u, adv, mask, lr: float, optimizer: s
     out = _update(params, opt.m, opt.v, opt.t, x, u, adv, mask, float(lr), optimizer, spec,
                   targets if spec.value else None)
     params, m, v, t, gnorm = jax.device_get(out)
-    as_np = lambda d: {k: np.asarray(a) for k, a in d.items()}  # noqa: E731
-    return as_np(params), OptState(as_np(m), as_np(v), float(t)), float(gnorm)
+    return _as_numpy(params), OptState(_as_numpy(m), _as_numpy(v), float(t)), float(gnorm)
