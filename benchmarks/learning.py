@@ -219,4 +219,9 @@ def summarize_files(paths: list[str], seeds: list[int] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    try:
+        sys.exit(main())
+    except KeyboardInterrupt:  # run_pool has stopped the pool it was running
+        print("learning.py: interrupted; the running pool was stopped, the lines written so far stay",
+              file=sys.stderr)
+        sys.exit(130)
