@@ -47,19 +47,19 @@ def resumed_learning_rates(paths: layout.Paths, pool_size: int) -> list[float] |
     from rl_pool.protocol import deposits
 
     last = deposits.last_selected(paths)
-    rates: list[float] = []
-    for m in range(pool_size):
-        for i in range(last, max(last - RESUME_LOOKBACK, 0), -1):
+    rates: dict[int, float] = {}
+    for i in range(last, max(last - RESUME_LOOKBACK, 0), -1):
+        # one listing per iteration: only deposits that are there are read (no waits for absent ones)
+        for m in deposits.present(paths, i, pool_size) - rates.keys():
             try:
                 lr = deposits.read_metrics(paths, i, m).get("learning_rate")
             except ValueError:
                 continue
             if isinstance(lr, (int, float)) and not isinstance(lr, bool) and lr > 0:
-                rates.append(float(lr))
-                break
-        else:
-            return None
-    return rates
+                rates[m] = float(lr)
+        if len(rates) == pool_size:
+            return [rates[m] for m in range(pool_size)]
+    return None
 
 
 def _flag(name: str) -> str:
