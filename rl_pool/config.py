@@ -107,6 +107,10 @@ class PoolConfig:
     merge_momentum: float = opt(0.5, "with --merge momentum: the fraction of the previous merge's step that a "
                                      "merge made right after it takes again (heavy-ball momentum across "
                                      "iterations)", added=True)
+    sharpen: float = opt(1.0, "after an iteration the parent (or a merge's fallback) kept, member I of N starts "
+                              "from that agent with its Beta shapes' excess over 1 times F^(I/(N-1)): less action "
+                              "noise, so the sampled return REINFORCE climbs comes closer to the mean-action score "
+                              "selection compares (1: never)", added=True)
     seed: int = opt(0, "root seed; every random draw derives from (seed, member, iteration)")
 
     @property
@@ -169,6 +173,10 @@ class PoolConfig:
             raise UsageError("--selection-margin needs --selection parent (it is a margin over the parent)")
         if not (math.isfinite(self.merge_momentum) and 0.0 <= self.merge_momentum < 1.0):
             raise UsageError(f"--merge-momentum must be in [0, 1), got {self.merge_momentum}")
+        if not (math.isfinite(self.sharpen) and 1.0 <= self.sharpen <= 1000.0):
+            raise UsageError(f"--sharpen must be in [1, 1000], got {self.sharpen}")
+        if self.sharpen != 1.0 and self.link != "exp":
+            raise UsageError("--sharpen needs --link exp")
         if self.parent_patience < 0:
             raise UsageError(f"--parent-patience must be >= 0, got {self.parent_patience}")
         if self.parent_patience and self.selection != "parent":

@@ -433,3 +433,26 @@ def test_gae_lambda_is_a_pool_setting_that_reaches_training_and_older_pools_read
                          for c in (cfg, cfg, dataclasses.replace(cfg, gae_lambda=0.8)))
     assert all(np.array_equal(plain.params[n], again.params[n]) for n in plain.params)
     assert not all(np.array_equal(plain.params[n], low.params[n]) for n in plain.params)
+
+
+@pytest.mark.parametrize("kind, hidden", [("linear", ()), ("mlp", (16, 8))])
+def test_sharpened_multiplies_each_shapes_excess_over_one(kind, hidden):
+    spec = policy.PolicySpec(kind, hidden, "exp")
+    params = _random_params(spec, 5, 3, seed=4, scale=0.5)
+    x = np.random.default_rng(4).normal(size=(9, 5))
+    a, b = policy.beta_params(params, x, spec)
+    for factor in (1.0, 2.5, 10.0):
+        sharp = policy.sharpened(params, spec, factor)
+        z = _reference_z(spec, sharp, x)  # the layer-by-layer reference, on the sharpened parameters
+        np.testing.assert_allclose(np.exp(z[:, :3]) + 1, factor * (a - 1) + 1, rtol=1e-12)
+        np.testing.assert_allclose(np.exp(z[:, 3:]) + 1, factor * (b - 1) + 1, rtol=1e-12)
+        # less action noise: the Beta's variance falls (scipy's, at every state and action)
+        if factor > 1:
+            assert (scipy.stats.beta(factor * (a - 1) + 1, factor * (b - 1) + 1).var()
+                    < scipy.stats.beta(a, b).var()).all()
+    changed = [k for k in params if not np.array_equal(sharp[k], params[k])]  # only the output bias moves
+    assert changed == (["w"] if kind == "linear" else [f"b{len(hidden)}"])
+    if kind == "linear":  # the linear policy's bias is the last row of its weights
+        np.testing.assert_array_equal(sharp["w"][:-1], params["w"][:-1])
+    with pytest.raises(ValueError, match="exp link"):
+        policy.sharpened(params, policy.PolicySpec(kind, hidden, "softplus"), 2.0)

@@ -644,3 +644,26 @@ def test_without_rate_patience_the_records_carry_no_rate():
             _cfg("none", **kw)
     with pytest.raises(UsageError, match="--rate-decay needs --rate-patience"):
         PoolConfig.merged({"rate_decay": 0.7}, None)
+
+
+# ---------------------------------------------------------------- sharper branches after a lock (--sharpen)
+@pytest.mark.parametrize("winner, want", [
+    ("parent", [1.0, 10 ** (1 / 3), 10 ** (2 / 3), 10.0]), ("fallback", [1.0, 10 ** (1 / 3), 10 ** (2 / 3), 10.0]),
+    ("branch", [1.0] * 4), ("merge", [1.0] * 4), ("revert", [1.0] * 4), ("carried", [1.0] * 4), (None, [1.0] * 4)])
+def test_sharpening_ladder_after_the_parent_was_kept(winner, want):
+    previous = PREVIOUS | ({"winner": winner} if winner else {})
+    got = [selection.sharpening(_cfg("momentum", n=4, sharpen=10.0), previous, m) for m in range(4)]
+    assert got == pytest.approx(want, rel=1e-12)
+    assert got[0] == 1.0  # member 0 (the guard) trains from the agent as it is
+    assert [selection.sharpening(_cfg("momentum", n=4), previous, m) for m in range(4)] == [1.0] * 4
+
+
+def test_sharpen_is_a_pool_setting_of_at_least_one_with_the_exp_link():
+    for bad in (0.5, float("nan"), float("inf"), 1e4):
+        with pytest.raises(UsageError, match="--sharpen must be"):
+            _cfg("momentum", sharpen=bad)
+    with pytest.raises(UsageError, match="--sharpen needs --link exp"):
+        _cfg("momentum", sharpen=3.0, link="softplus")
+    d = _cfg("momentum").to_json()
+    d.pop("sharpen")  # pools made before the setting never sharpen
+    assert PoolConfig.from_json(d).sharpen == 1.0

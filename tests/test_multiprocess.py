@@ -527,3 +527,48 @@ def test_rates_that_follow_the_pool_train_every_branch_and_replay_after_a_kill(t
     again = _rate_pool(tmp_path / "killed", kill_at=3)
     keys = ("winner", "member", "eval_return", "agent_sha256", "rate", "considered", "parent")
     assert [{k: s.get(k) for k in keys} for s in again] == [{k: s.get(k) for k in keys} for s in sels]
+
+
+def _sharpen_pool(d, kill_at=None):
+    """A 3-member pool that sharpens its branches after the parent is kept (``--sharpen 4``); with
+    ``kill_at``, member 2 is killed with SIGKILL while it trains in an iteration >= ``kill_at``."""
+    n, iters = 3, 8
+    args = ["--pool-size", n, "--iterations", iters, *SHORT, "--quiet", "--seed", 2, "--merge", "momentum",
+            "--sharpen", 4, "--quorum", n]
+    _run_with_a_kill(d, [0.03, 0.3, 0.3], args, 2, kill_at)
+    return [json.loads((d / f"iterations/{i:06d}/selected.json").read_text()) for i in range(iters + 1)]
+
+
+def test_sharper_branches_after_a_kept_parent_train_from_the_files_and_replay_after_a_kill(tmp_path):
+    """``--sharpen``: after an iteration that kept the parent, member m of 3 starts from it with its Beta
+    shapes' excess over 1 times 4^(m/2) and says so in its deposit (retraining member 2 here from the
+    sharpened parent gives its deposit's parameters exactly); after other iterations no member
+    sharpens; a member killed mid-iteration and started again replays the same selections."""
+    from rl_pool.config import PoolConfig
+    from rl_pool.learning import envs, trainer
+    from rl_pool.maths import policy
+
+    d = tmp_path / "whole"
+    sels = _sharpen_pool(d)
+    cfg = PoolConfig.from_json(json.loads((d / "pool.json").read_text()))
+    kept = []
+    for prev, sel in itertools.pairwise(sels):
+        i = sel["iteration"]
+        got = [json.loads((d / f"iterations/{i:06d}/member-{m:03d}.json").read_text())["sharpen"] for m in range(3)]
+        if prev.get("winner") in ("parent", "fallback"):
+            assert got == pytest.approx([1.0, 2.0, 4.0], rel=1e-12)
+            kept.append(i)
+        else:
+            assert got == [1.0, 1.0, 1.0]
+    assert kept, [s.get("winner") for s in sels]
+    i = kept[0]
+    parent = Agent.load(d / sels[i - 1]["agent"])
+    dep = Agent.load(d / f"iterations/{i:06d}/member-002.npz")
+    env_list = [envs.make(cfg.env, dict(cfg.env_kwargs, max_episode_steps=cfg.max_episode_steps))[0]
+                for _ in range(max(cfg.batch_episodes, cfg.eval_episodes))]
+    sharp = parent.evolve(params=policy.sharpened(parent.params, parent.spec, 4.0))
+    for name, value in trainer.train(sharp, env_list, cfg, 0.3, 2, i).agent.params.items():
+        np.testing.assert_array_equal(value, dep.params[name])
+    again = _sharpen_pool(tmp_path / "killed", kill_at=kept[0])
+    keys = ("winner", "member", "eval_return", "agent_sha256", "merge", "considered", "parent")
+    assert [{k: s.get(k) for k in keys} for s in again] == [{k: s.get(k) for k in keys} for s in sels]

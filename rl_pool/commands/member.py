@@ -25,6 +25,7 @@ from rl_pool.commands import status, tb
 from rl_pool.config import MemberConfig, PoolConfig
 from rl_pool.errors import SignalLatch, Stopped, UsageError
 from rl_pool.learning import envs, trainer
+from rl_pool.maths import policy
 from rl_pool.maths.agent import Agent, AgentMeta
 from rl_pool.protocol import barrier, deposits, heartbeat, layout, pool, selection
 
@@ -240,7 +241,10 @@ def _loop(paths: layout.Paths, cfg: PoolConfig, mc: MemberConfig, hb: heartbeat.
                 log.info("iteration %d: own deposit already on disk; waiting for the others", i)
                 mine = metrics = None
             else:
-                start = deposits.load_selected_agent(paths, i - 1, prev, like=like)
+                selected = deposits.load_selected_agent(paths, i - 1, prev, like=like)
+                sharpen = selection.sharpening(cfg, prev, me)
+                start = selected if sharpen == 1.0 else selected.evolve(
+                    params=policy.sharpened(selected.params, selected.spec, sharpen))
                 hb.set(state="training", iteration=i)
                 scale = selection.rate_scale(prev)  # --rate-patience: the pool's share of every rate
                 tr = trainer.train(start, train_envs, cfg, lr * scale, me, i)
@@ -251,7 +255,7 @@ def _loop(paths: layout.Paths, cfg: PoolConfig, mc: MemberConfig, hb: heartbeat.
                     # The parent competes on the same episodes (or, with --best-score mean, a best
                     # is re-scored); several members score it (three in turn), so the selection
                     # does not depend on any one member's deposit being there.
-                    pe = trainer.evaluate(start, env_list, cfg, i)
+                    pe = trainer.evaluate(selected, env_list, cfg, i)
                     parent = {"parent_eval_return": pe.mean, "parent_eval_score": pe.score,
                               "parent_eval_returns": pe.returns, "parent_eval_lengths": pe.lengths,
                               "parent_sha256": prev["agent_sha256"],
@@ -259,6 +263,7 @@ def _loop(paths: layout.Paths, cfg: PoolConfig, mc: MemberConfig, hb: heartbeat.
                     parent |= _score_fallback(paths, cfg, prev, like, env_list, i)
                 metrics = ev.summary() | parent | {
                     "learning_rate": lr, **({"rate_scale": scale} if cfg.rate_patience else {}),
+                    **({"sharpen": sharpen} if cfg.sharpen != 1.0 else {}),
                     "train_steps": tr.steps, "train_seconds": tr.seconds,
                     "train_return_mean": sum(tr.episode_returns) / len(tr.episode_returns),
                     "eval_steps": ev.steps, "eval_seconds": ev.seconds,

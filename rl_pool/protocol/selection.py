@@ -393,6 +393,17 @@ def _merge_or_pick(cfg: PoolConfig, out: dict, previous: dict, considered: list[
     return [c["member"] for c in considered]
 
 
+def sharpening(cfg: PoolConfig, previous: dict, member: int) -> float:
+    """By how much member ``member`` sharpens the agent it starts from after ``previous``
+    (``--sharpen`` F): ``F ** (member / (N - 1))`` when ``previous`` kept the parent or a merge's
+    fallback (a lock: every branch scored below it), else 1. A ladder from the agent as it is
+    (member 0) to F times sharper, so the pool tries several noise levels at once and selection
+    keeps the one whose branch scored best."""
+    if cfg.sharpen == 1.0 or cfg.pool_size < 2 or previous.get("winner") not in ("parent", "fallback"):
+        return 1.0
+    return float(cfg.sharpen ** (member / (cfg.pool_size - 1)))
+
+
 def merge_momentum(cfg: PoolConfig, previous: dict) -> dict | None:
     """The momentum term of a ``--merge momentum`` merge made after ``previous``: ``{"beta",
     "from"}``, where ``from`` names the agent the previous iteration started from, so the merge adds
