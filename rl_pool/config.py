@@ -177,6 +177,8 @@ class PoolConfig:
             raise UsageError(f"--sharpen must be in [1, 1000], got {self.sharpen}")
         if self.sharpen != 1.0 and self.link != "exp":
             raise UsageError("--sharpen needs --link exp")
+        if self.sharpen != 1.0 and self.selection != "parent":
+            raise UsageError("--sharpen needs --selection parent (it follows iterations that kept the parent)")
         if self.parent_patience < 0:
             raise UsageError(f"--parent-patience must be >= 0, got {self.parent_patience}")
         if self.parent_patience and self.selection != "parent":

@@ -664,6 +664,8 @@ def test_sharpen_is_a_pool_setting_of_at_least_one_with_the_exp_link():
             _cfg("momentum", sharpen=bad)
     with pytest.raises(UsageError, match="--sharpen needs --link exp"):
         _cfg("momentum", sharpen=3.0, link="softplus")
+    with pytest.raises(UsageError, match="--sharpen needs --selection parent"):
+        _cfg("momentum", sharpen=3.0, selection="branches")
     d = _cfg("momentum").to_json()
     d.pop("sharpen")  # pools made before the setting never sharpen
     assert PoolConfig.from_json(d).sharpen == 1.0

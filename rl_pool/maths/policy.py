@@ -166,7 +166,8 @@ def init_params(spec: PolicySpec, obs_dim: int, act_dim: int, seed: int = 0,
 def sharpened(params: dict, spec: PolicySpec, factor: float) -> dict:
     """``params`` with every Beta shape's excess over 1 multiplied by ``factor`` (``exp`` link:
     ``log(factor)`` added to the output bias of every shape): the same policy with its action noise
-    narrowed, its mean action moved a little towards its mode. The value network's parameters stay."""
+    narrowed, its mean action moved a little towards its mode (exactly ``factor`` times while the
+    pre-activation stays below the link's cap, ``Z_MAX``). The value network's parameters stay."""
     if spec.link != "exp":
         raise ValueError("sharpening needs the exp link")
     name = "w" if spec.kind == "linear" else f"b{len(spec.hidden)}"
