@@ -155,12 +155,17 @@ def init_params(spec: PolicySpec, obs_dim: int, act_dim: int, seed: int = 0,
         else:
             params[name] = rng.normal(0.0, 1.0 / math.sqrt(dims[0]), size=dims)
     if shape is not None:
-        bias = init_bias(spec.link, shape)
-        if spec.kind == "linear":
-            params["w"][-1] = bias
-        else:
-            params[f"b{n_layers - 1}"][:] = bias
+        name, rows = shape_bias(spec)
+        params[name][rows] = init_bias(spec.link, shape)
     return params
+
+
+def shape_bias(spec: PolicySpec) -> tuple[str, object]:
+    """Where the output bias of the Beta shapes' pre-activations lives: ``(parameter name, index)``
+    (the last row of a linear policy's weights; an MLP's last bias vector)."""
+    if spec.kind == "linear":
+        return "w", -1
+    return f"b{len(spec.hidden)}", slice(None)
 
 
 def sharpened(params: dict, spec: PolicySpec, factor: float) -> dict:
@@ -170,15 +175,10 @@ def sharpened(params: dict, spec: PolicySpec, factor: float) -> dict:
     pre-activation stays below the link's cap, ``Z_MAX``). The value network's parameters stay."""
     if spec.link != "exp":
         raise ValueError("sharpening needs the exp link")
-    name = "w" if spec.kind == "linear" else f"b{len(spec.hidden)}"
-    out = dict(params)
+    name, rows = shape_bias(spec)
     bias = np.array(params[name], dtype=np.float64)
-    if spec.kind == "linear":
-        bias[-1] += math.log(factor)
-    else:
-        bias += math.log(factor)
-    out[name] = bias
-    return out
+    bias[rows] += math.log(factor)
+    return dict(params, **{name: bias})
 
 
 def preactivations(params: dict, x, spec: PolicySpec, xp=np):
