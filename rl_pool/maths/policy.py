@@ -160,7 +160,7 @@ def init_params(spec: PolicySpec, obs_dim: int, act_dim: int, seed: int = 0,
     return params
 
 
-def shape_bias(spec: PolicySpec) -> tuple[str, object]:
+def shape_bias(spec: PolicySpec) -> tuple[str, int | slice]:
     """Where the output bias of the Beta shapes' pre-activations lives: ``(parameter name, index)``
     (the last row of a linear policy's weights; an MLP's last bias vector)."""
     if spec.kind == "linear":
