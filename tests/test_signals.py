@@ -1,4 +1,7 @@
-"""Stop signals that Python loses in a finaliser are raised again (errors.SignalLatch)."""
+"""Stop signals that Python loses in a finaliser are raised again (errors.SignalLatch), and one that
+lands inside an environment's constructor stops the member instead of failing it."""
+import json
+import os
 import signal
 import sys
 import threading
@@ -9,6 +12,7 @@ import pytest
 from rl_pool.errors import SignalLatch, Stopped
 from rl_pool.protocol import barrier, heartbeat
 
+from .conftest import ROOT, SHORT, spawn
 from .helpers import deposit, like_agent, make_pool
 
 
@@ -67,3 +71,49 @@ def test_a_waiting_member_stops_at_its_next_poll_when_the_signal_was_lost(tmp_pa
     finally:
         signal.signal(signal.SIGALRM, signal.SIG_DFL)
         latch.restore(old)
+
+
+_STALLING_ENV = '''
+import os, signal, time
+
+import gymnasium
+from gymnasium.envs.mujoco.swimmer_v5 import SwimmerEnv
+
+
+def make(**kwargs):
+    """Swimmer, except that once the member's stop handler is in place, making it stalls the way a
+    first `import mujoco` does, and an interrupt comes out as an ImportError, as from a C extension."""
+    if signal.getsignal(signal.SIGINT) is not signal.default_int_handler:
+        with open(os.environ["STALL_MARK"], "w") as fh:
+            fh.write(str(os.getpid()))
+        try:
+            time.sleep(120)
+        except BaseException as exc:
+            raise ImportError("initialization of an extension module failed") from exc
+    return SwimmerEnv(**kwargs)
+
+
+gymnasium.register("Stall-v0", entry_point=make, max_episode_steps=60)
+'''
+
+
+def test_ctrl_c_while_the_first_env_is_made_stops_the_member_instead_of_failing_it(tmp_path):
+    """Ctrl-C that lands while a member makes its first environment and comes out of that code as
+    an ImportError: the member exits 130 and its heartbeat says stopped, not failed."""
+    (tmp_path / "stall.py").write_text(_STALLING_ENV)
+    mark = tmp_path / "stalled"
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(tmp_path), ROOT]), "STALL_MARK": str(mark)}
+    d = tmp_path / "pool"
+    proc = spawn("train", "--pool-dir", d, "--env", "stall:Stall-v0", "--member", 0, "--pool-size", 1,
+                 "--iterations", 2, *SHORT, "--quiet", env=env)
+    deadline = time.monotonic() + 120
+    while not mark.exists() and proc.poll() is None and time.monotonic() < deadline:
+        time.sleep(0.05)
+    assert mark.exists(), proc.communicate(timeout=10)
+    time.sleep(0.1)  # the pid is written: the member is asleep inside the env's constructor
+    proc.send_signal(signal.SIGINT)
+    _, err = proc.communicate(timeout=60)
+    assert proc.returncode == 128 + signal.SIGINT, err
+    assert "Traceback" not in err
+    doc = json.loads((d / "members" / "member-000.json").read_text())
+    assert doc["state"] == "stopped" and "SIGINT" in doc["error"], doc

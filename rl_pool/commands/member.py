@@ -140,7 +140,14 @@ def run(pool_dir: str, requested: dict, mc: MemberConfig, quiet: bool = False) -
     try:
         old = _stop.install((signal.SIGTERM, signal.SIGINT, signal.SIGHUP))
         hb.start()
-        _loop(paths, cfg, mc, hb, last + 1)
+        try:
+            _loop(paths, cfg, mc, hb, last + 1)
+        except Exception:
+            # A signal that lands inside a C extension (Ctrl-C while MuJoCo is first imported)
+            # can come out as that code's own error (an ImportError): with a stop pending, the
+            # error is the stop's doing, so the member stops instead of reporting a failure.
+            _stop.check()
+            raise
     except Stopped as exc:
         log.warning("stopped by %s; deposits on disk are whole, restart to resume", exc)
         hb.stop("stopped", error=f"stopped by {exc}")
