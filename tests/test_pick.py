@@ -86,6 +86,39 @@ def test_top_k_with_workers_gives_the_same_numbers_and_adds_the_last_selected(po
     assert again["mean_return"] == pytest.approx(two["picked"]["mean_return"], rel=1e-12)
 
 
+def test_finalists_play_the_episodes_that_follow_and_the_best_mean_over_all_of_them_is_picked(pool_dir, tmp_path):
+    out = tmp_path / "final.npz"
+    one = json.loads(rl_pool("pick", pool_dir, "--top", 0, "--episodes", 2, "--out", tmp_path / "one.npz", "--json",
+                             check=0).stdout)
+    res = json.loads(rl_pool("pick", pool_dir, "--top", 0, "--episodes", 2, "--finalists", 2, "--final-episodes", 3,
+                             "--workers", 2, "--out", out, "--json", check=0).stdout)
+    assert (res["finalists"], res["final_episodes"]) == (2, 3)
+    # the first round is the plain pick's; its two best (ties: the higher-ranked) play on
+    firsts = [c["mean_return"] for c in one["candidates"]]
+    leaders = sorted(range(len(firsts)), key=lambda j: (-firsts[j], j))[:2]
+    for j, c in enumerate(res["candidates"]):
+        assert c["agent_sha256"] == one["candidates"][j]["agent_sha256"]
+        if j in leaders:
+            assert c["finalist"] and c["first_mean_return"] == firsts[j] and c["episodes"] == 5
+            agent = Agent.load(pool_dir / c["agent"])
+            ref = [reference_episode(agent, 2_000_000 + k)[0] for k in range(5)]
+            np.testing.assert_allclose(c["returns"], ref, rtol=1e-12)
+            assert c["mean_return"] == pytest.approx(np.mean(ref), rel=1e-12)
+        else:
+            assert "finalist" not in c and c["returns"] == one["candidates"][j]["returns"] and c["episodes"] == 2
+    # the pick: the finalist with the highest mean over its 5 episodes, whatever the others scored on 2
+    finals = [res["candidates"][j] for j in leaders]
+    chosen = max(finals, key=lambda c: c["mean_return"])
+    assert res["picked"]["agent_sha256"] == chosen["agent_sha256"] == _sha(out)
+    assert res["picked"]["episodes"] == 5
+    again = json.loads(rl_pool("evaluate", out, "--episodes", 5, "--seed", 2_000_000, "--json", check=0).stdout)
+    assert again["mean_return"] == pytest.approx(res["picked"]["mean_return"], rel=1e-12)
+    text = rl_pool("pick", pool_dir, "--top", 0, "--episodes", 2, "--finalists", 2, "--final-episodes", 3,
+                   "--out", out, check=0).stdout
+    assert "the 2 best of them on 3 more (reset seeds 2000002..2000004)" in text
+    assert text.count("(finalist)") + text.count("<- picked") == 2
+
+
 def test_unreadable_candidates_are_skipped_with_the_reason(pool_dir, tmp_path):
     # a copy of the pool in which one selected agent is garbage and another is a FIFO (never read)
     import shutil
@@ -145,9 +178,12 @@ def test_a_directory_at_the_pick_is_set_aside(pool_dir, tmp_path):
 
 
 @pytest.mark.parametrize("args, message", [
-    (["--top", "-1"], "--top must be >= 0"),
-    (["--episodes", "0"], "--episodes and --workers positive"),
-    (["--episodes", "10000000000"], "--episodes must be at most 1000000"),
+    (["--top", "-1"], "--top and --finalists must be >= 0"),
+    (["--episodes", "0"], "--episodes, --final-episodes and --workers positive"),
+    (["--episodes", "10000000000"], "--episodes (plus --final-episodes) must be at most 1000000"),
+    (["--finalists", "-1"], "--top and --finalists must be >= 0"),
+    (["--finalists", "2", "--final-episodes", "0"], "--final-episodes and --workers positive"),
+    (["--episodes", "999999", "--finalists", "1", "--final-episodes", "2"], "must be at most 1000000"),
 ])
 def test_bad_arguments_get_one_line(pool_dir, args, message):
     proc = rl_pool("pick", pool_dir, *args, check=2)

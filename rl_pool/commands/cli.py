@@ -211,7 +211,7 @@ def cmd_pick(args) -> int:
     from rl_pool.commands import pick
 
     res = pick.pick(args.pool_dir, top=args.top, episodes=args.episodes, seed=args.seed, workers=args.workers,
-                    mode=args.mode, out=args.out)
+                    mode=args.mode, out=args.out, finalists=args.finalists, final_episodes=args.final_episodes)
     print(json.dumps(res) if args.json else pick.format_text(res))
     return 0
 
@@ -312,6 +312,11 @@ def build_parser() -> argparse.ArgumentParser:
                     help="candidates: this many distinct selected agents by evaluation return (0: all), and "
                          "the last selected agent (default 20)")
     pk.add_argument("--episodes", type=int, default=20, help="held-out episodes, the same for every candidate")
+    pk.add_argument("--finalists", type=int, default=0, metavar="K",
+                    help="the K best on --episodes play --final-episodes more, and the pick is the finalist "
+                         "with the highest mean over all its episodes (0: no final round; default 0)")
+    pk.add_argument("--final-episodes", type=int, default=100,
+                    help="held-out episodes of the final round, after the first round's (default 100)")
     pk.add_argument("--seed", type=_seed, default=2_000_000,
                     help="first held-out episode's reset seed (default 2000000: not evaluate's 1000000 on)")
     pk.add_argument("--workers", type=int, default=1, help="worker processes (spawned, one math thread each)")

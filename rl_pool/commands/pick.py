@@ -113,11 +113,13 @@ def _why_not_playable(data: bytes, digest: str, source: str, cfg, like=None) -> 
 
 
 def pick(pool_dir: str, top: int = 20, episodes: int = 20, seed: int = DEFAULT_SEED, workers: int = 1,
-         mode: str = "mean", out: str | None = None) -> dict:
-    if top < 0 or episodes < 1 or workers < 1:
-        raise UsageError("--top must be >= 0, --episodes and --workers positive")
-    if episodes > MAX_EPISODES:
-        raise UsageError(f"--episodes must be at most {MAX_EPISODES}")
+         mode: str = "mean", out: str | None = None, finalists: int = 0, final_episodes: int = 100) -> dict:
+    """Run the candidates on ``episodes`` held-out episodes; with ``finalists`` K, the K best of them
+    on ``final_episodes`` more, and pick the finalist with the highest mean over all its episodes."""
+    if top < 0 or episodes < 1 or workers < 1 or finalists < 0 or final_episodes < 1:
+        raise UsageError("--top and --finalists must be >= 0, --episodes, --final-episodes and --workers positive")
+    if episodes + (final_episodes if finalists else 0) > MAX_EPISODES:
+        raise UsageError(f"--episodes (plus --final-episodes) must be at most {MAX_EPISODES}")
     paths = layout.Paths(pool_dir)
     cfg = pool.read_config(paths, readonly=True)  # a foreign directory is refused here
     verified = pool.attach_key(paths, required=False)
@@ -147,43 +149,63 @@ def pick(pool_dir: str, top: int = 20, episodes: int = 20, seed: int = DEFAULT_S
                          + (f" ({len(skipped)} unreadable)" if skipped else ""))
     seeds = [seed + k for k in range(episodes)]
     results = _run_all([data for _, data in ok], seeds, mode, workers)
-    rows = []
-    for (c, _), rets in zip(ok, results, strict=True):
-        mean = math.fsum(rets) / len(rets)
-        std = math.sqrt(math.fsum((r - mean) ** 2 for r in rets) / len(rets))
-        rows.append(c | {"mean_return": mean, "std_return": std, "returns": rets})
+    rows = [c | _stats(rets) for (c, _), rets in zip(ok, results, strict=True)]
     # the highest held-out mean; ties go to the higher-ranked candidate (listed first)
-    best = max(range(len(rows)), key=lambda j: (rows[j]["mean_return"], -j))
+    ranked = sorted(range(len(rows)), key=lambda j: (-rows[j]["mean_return"], j))
+    if finalists:
+        # The round's maximum is partly luck too: the leaders play on, on the episodes that follow.
+        more = [seed + episodes + k for k in range(final_episodes)]
+        leaders = ranked[:finalists]
+        extra = _run_all([ok[j][1] for j in leaders], more, mode, workers)
+        for j, rets in zip(leaders, extra, strict=True):
+            rows[j] |= {"first_mean_return": rows[j]["mean_return"], "finalist": True}
+            rows[j] |= _stats(rows[j]["returns"] + rets)
+        ranked = sorted(leaders, key=lambda j: (-rows[j]["mean_return"], j))
+    best = ranked[0]
     chosen = rows[best]
     data = ok[best][1]
     npz = out or os.path.join(paths.root, "picked.npz")
     meta = os.path.splitext(npz)[0] + ".json"
     summary = {"pool_dir": str(paths.root), "verified": verified, "episodes": episodes, "seed": seed,
-               "mode": mode, "top": top, "distinct_agents": distinct, "seconds": time.perf_counter() - t0,
+               "mode": mode, "top": top, "finalists": finalists, "final_episodes": final_episodes if finalists else 0,
+               "distinct_agents": distinct, "seconds": time.perf_counter() - t0,
                "picked": {k: chosen[k] for k in ("iteration", "agent", "agent_sha256", "eval_return",
-                                                 "mean_return", "std_return")},
+                                                 "mean_return", "std_return", "episodes")},
                "out": npz}
     if out is None:
         pool.make_room(paths, npz, meta)
     fsutil.atomic_write(npz, data)
     fsutil.write_json(meta, summary | {"candidates": [{k: r[k] for k in ("iteration", "agent_sha256", "eval_return",
-                                                                          "mean_return", "std_return")}
+                                                                          "mean_return", "std_return", "episodes")}
                                                       for r in rows]})
     return summary | {"candidates": rows, "skipped": skipped}
+
+
+def _stats(rets: list[float]) -> dict:
+    mean = math.fsum(rets) / len(rets)
+    std = math.sqrt(math.fsum((r - mean) ** 2 for r in rets) / len(rets))
+    return {"mean_return": mean, "std_return": std, "returns": rets, "episodes": len(rets)}
 
 
 def format_text(res: dict) -> str:
     n = len(res["candidates"])
     which = "all" if res["top"] == 0 else f"the top {res['top']} by evaluation return, and the last selected"
+    first, last = res["seed"], res["seed"] + res["episodes"] - 1
     lines = [f"{n} of {res['distinct_agents']} selected agents ({which}) on {res['episodes']} held-out episodes "
-             f"(reset seeds {res['seed']}..{res['seed'] + res['episodes'] - 1}, {res['mode']} actions) "
-             f"in {res['seconds']:.1f}s" + ("" if res["verified"] else "; pool files unverified (no key)"),
-             f"{'iteration':>9} {'eval return':>12} {'held-out mean':>14} {'std':>8}"]
+             f"(reset seeds {first}..{last}, {res['mode']} actions) "
+             f"in {res['seconds']:.1f}s" + ("" if res["verified"] else "; pool files unverified (no key)")]
+    if res["finalists"]:
+        lines.append(f"the {res['finalists']} best of them on {res['final_episodes']} more (reset seeds "
+                     f"{last + 1}..{last + res['final_episodes']}); the pick is the finalist with the highest "
+                     f"mean over all its episodes")
+    lines.append(f"{'iteration':>9} {'eval return':>12} {'held-out mean':>14} {'std':>8} {'episodes':>8}")
     for r in res["candidates"]:
         ev = "—" if r["eval_return"] is None else f"{r['eval_return']:.2f}"
         mark = " <- picked" if r["agent_sha256"] == res["picked"]["agent_sha256"] else ""
+        mark += " (finalist)" if r.get("finalist") and not mark else ""
         mark += " (last selected)" if r.get("last") else ""
-        lines.append(f"{r['iteration']:>9} {ev:>12} {r['mean_return']:>14.2f} {r['std_return']:>8.2f}{mark}")
+        lines.append(f"{r['iteration']:>9} {ev:>12} {r['mean_return']:>14.2f} {r['std_return']:>8.2f} "
+                     f"{r['episodes']:>8}{mark}")
     for s in res["skipped"]:
         lines.append(f"skipped iteration {s['iteration']}'s agent {s['agent']}: {s['reason']}")
     p = res["picked"]
