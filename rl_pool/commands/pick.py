@@ -17,6 +17,11 @@ whole 32-bit range, nor ``evaluate``'s default 1,000,000 on), so a later
 Episodes run as in ``evaluate`` (the same worker code): a candidate's mean here
 equals ``rl-pool evaluate AGENT --episodes E --seed SEED``.
 
+With ``finalists`` K, the K candidates with the best means go on to ``final_episodes`` more
+held-out episodes (the seeds after the first round's), and the pick is the finalist with the
+highest mean over all its episodes: a first round of 20 episodes cannot tell an agent that fails
+once in 20 starts from one that never does.
+
 The pool is only read, apart from the pick itself: ``POOL/picked.npz`` and
 ``POOL/picked.json`` (``--out`` elsewhere).
 """
