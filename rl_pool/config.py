@@ -111,6 +111,10 @@ class PoolConfig:
                               "from that agent with its Beta shapes' excess over 1 times F^(I/(N-1)): less action "
                               "noise, so the sampled return REINFORCE climbs comes closer to the mean-action score "
                               "selection compares (1: never)", added=True)
+    init_agent: str = opt("", "start the pool from this agent (an agent file, or a pool directory: its best "
+                              "agent) instead of a fresh one: its weights and observation statistics, with fresh "
+                              "Adam moments; it must be an agent for the same task and policy (--init-shape then "
+                              "does not apply); read where the pool is made", added=True)
     seed: int = opt(0, "root seed; every random draw derives from (seed, member, iteration)")
 
     @property

@@ -296,3 +296,48 @@ def test_training_env_kwargs_change_the_training_episodes_only(tmp_path):
     assert deps["costly"]["parent_eval_returns"] == deps["plain"]["parent_eval_returns"]
     assert deps["costly"]["train_return_mean"] < deps["plain"]["train_return_mean"] - 1.0
     assert Agent.load(tmp_path / "costly/best.npz").meta.env_kwargs == {}  # the agent is for the task itself
+
+
+def test_a_pool_started_from_another_pools_agent_keeps_its_numbers_with_fresh_moments(single_pool, tmp_path):
+    """--init-agent POOL: iteration 0 is that pool's best agent (weights and observation statistics),
+    with Adam's moments and step count reset; the pool resumes without the option."""
+    from rl_pool.protocol import deposits, layout
+
+    d = tmp_path / "fine-tune"
+    args = ["--pool-dir", d, "--member", 0, "--pool-size", 1, *SHORT, "--quiet"]
+    rl_pool("train", *args, "--iterations", 1, "--init-agent", single_pool, check=0)
+    start = deposits.load_selected_agent(layout.Paths(str(d)), 0)
+    best = Agent.load(single_pool / "best.npz")
+    assert best.opt_t > 0 and start.opt_t == 0.0
+    assert start.meta == best.meta and start.params.keys() == best.params.keys()
+    for k in best.params:
+        np.testing.assert_array_equal(start.params[k], best.params[k])
+        assert not start.opt_m[k].any() and not start.opt_v[k].any()
+    for a, b in zip(start.norm, best.norm, strict=True):
+        np.testing.assert_array_equal(a, b)
+    assert json.loads((d / "pool.json").read_text())["init_agent"] == str(single_pool)
+    rl_pool("train", *args, "--iterations", 2, check=0)  # resumed: the option is the pool's
+    assert json.loads(rl_pool("status", d, "--json", check=0).stdout)["iterations_completed"] == 2
+
+
+@pytest.mark.parametrize("what, says", [
+    ("mlp", "is an agent for Swimmer-v5 {}, 60 steps, linear (exp link); this pool trains Swimmer-v5 {}, 60 steps, "
+            "mlp 64,64 (exp link)"),
+    ("fifo", "a FIFO, not a regular file"),
+    ("missing", "no agent file or pool directory at"),
+    ("garbage", "agent"),
+])
+def test_a_starting_agent_that_does_not_fit_is_refused_in_one_line_and_nothing_is_made(single_pool, tmp_path,
+                                                                                       what, says):
+    source = {"mlp": single_pool / "best.npz", "fifo": tmp_path / "fifo.npz", "missing": tmp_path / "none.npz",
+              "garbage": tmp_path / "garbage.npz"}[what]
+    if what == "fifo":
+        os.mkfifo(source)
+    if what == "garbage":
+        source.write_bytes(b"not an agent")
+    extra = ["--policy", "mlp"] if what == "mlp" else []
+    d = tmp_path / "pool"
+    proc = rl_pool("train", "--pool-dir", d, "--member", 0, "--pool-size", 1, "--iterations", 1, *SHORT, *extra,
+                   "--init-agent", source, "--quiet", check=2, timeout=60)
+    assert proc.stderr.count("\n") == 1 and says in proc.stderr and "Traceback" not in proc.stderr
+    assert not d.exists()

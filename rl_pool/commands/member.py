@@ -12,6 +12,7 @@ from __future__ import annotations
 import dataclasses
 import errno
 import io
+import json
 import logging
 import os
 import signal
@@ -19,6 +20,8 @@ import socket
 import sys
 import time
 import traceback
+
+import numpy as np
 
 from rl_pool import fsutil
 from rl_pool.commands import status, tb
@@ -60,7 +63,26 @@ def make_initial(cfg: PoolConfig):
     cfg = dataclasses.replace(cfg, max_episode_steps=info.max_episode_steps)
     meta = AgentMeta(cfg.env, dict(cfg.env_kwargs), info.max_episode_steps, info.obs_dim, info.act_dim,
                      tuple(float(x) for x in info.low), tuple(float(x) for x in info.high), cfg.spec)
+    if cfg.init_agent:
+        return _starting_agent(cfg.init_agent, meta), cfg
     return Agent.initial(meta, seed=cfg.seed, shape=cfg.init_shape or None), cfg
+
+
+def _starting_agent(target: str, meta: AgentMeta) -> Agent:
+    """``--init-agent``: the agent at ``target`` (a file, or a pool's best) with fresh Adam moments;
+    refused unless it is an agent for the task and policy the pool is made for."""
+    from rl_pool.commands.evaluate import resolve_agent
+
+    path, data = resolve_agent(target)
+    agent = Agent.from_bytes(data, source=path)
+    if agent.meta != meta:
+        def says(m):
+            return (f"{m.env} {json.dumps(m.env_kwargs, sort_keys=True)}, {m.max_episode_steps} steps, "
+                    f"{m.spec.describe()}")
+        raise UsageError(f"--init-agent {target} is an agent for {says(agent.meta)}; this pool trains "
+                         f"{says(meta)}")
+    zeros = {k: np.zeros_like(v) for k, v in agent.params.items()}
+    return agent.evolve(opt_m=zeros, opt_v=dict(zeros), opt_t=0.0)
 
 
 def check_arguments(paths: layout.Paths, requested: dict, members: list[MemberConfig]) -> PoolConfig:
