@@ -10,6 +10,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
+import os
 import re
 from dataclasses import MISSING, asdict, dataclass, field, fields
 
@@ -114,7 +115,10 @@ class PoolConfig:
     init_agent: str = opt("", "start the pool from this agent (an agent file, or a pool directory: its best "
                               "agent) instead of a fresh one: its weights and observation statistics, with fresh "
                               "Adam moments; it must be an agent for the same task and policy (--init-shape then "
-                              "does not apply); read where the pool is made", added=True)
+                              "does not apply)", added=True)
+    #: the sha256 of --init-agent's bytes, recorded when the pool is made: a member that builds
+    #: iteration 0 later (a racing start, another host) must read the same agent
+    init_agent_sha256: str = opt("", "", added=True, internal=True)
     seed: int = opt(0, "root seed; every random draw derives from (seed, member, iteration)")
 
     @property
@@ -242,8 +246,13 @@ class PoolConfig:
             have = getattr(saved, name)
             if name == "max_episode_steps" and value == 0:
                 continue  # 0 means "the env's limit", resolved when the pool was made
+            if name == "init_agent" and value:
+                value = os.path.abspath(value)  # recorded so when the pool was made
             if _norm(value) != _norm(have):
                 flag = "--" + name.replace("_", "-")
+                if have == "":
+                    raise UsageError(f"{where} was made without {flag}, this run asks for {_show(value)} "
+                                     "(drop the option, or use another --pool-dir)")
                 if preset:
                     raise UsageError(
                         f"{where} was made with {flag} {_show(have)}, and --preset {preset} sets {_show(value)} "

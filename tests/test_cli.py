@@ -1,5 +1,6 @@
 """The real CLI on real Swimmer-v5 (short episodes): pool files, status, bad input."""
 
+import hashlib
 import json
 import os
 import subprocess
@@ -9,6 +10,7 @@ import numpy as np
 import pytest
 
 from rl_pool import Agent
+from rl_pool.errors import UsageError
 
 from .conftest import ROOT, SHORT, rl_pool
 
@@ -315,17 +317,47 @@ def test_a_pool_started_from_another_pools_agent_keeps_its_numbers_with_fresh_mo
         assert not start.opt_m[k].any() and not start.opt_v[k].any()
     for a, b in zip(start.norm, best.norm, strict=True):
         np.testing.assert_array_equal(a, b)
-    assert json.loads((d / "pool.json").read_text())["init_agent"] == str(single_pool)
+    saved = json.loads((d / "pool.json").read_text())
+    assert saved["init_agent"] == str(single_pool)
+    assert saved["init_agent_sha256"] == hashlib.sha256((single_pool / "best.npz").read_bytes()).hexdigest()
     rl_pool("train", *args, "--iterations", 2, check=0)  # resumed: the option is the pool's
     assert json.loads(rl_pool("status", d, "--json", check=0).stdout)["iterations_completed"] == 2
 
 
+def test_a_starting_agent_is_pinned_by_its_hash_and_its_path_may_be_relative(single_pool, tmp_path):
+    """The pool records the absolute path and the sha256 of --init-agent's file: a resume may name it
+    relative to where it runs, and a member that would build iteration 0 from a file that changed
+    since (a racing start on another host, a pool still writing its best) is refused."""
+    from rl_pool.commands.member import make_initial
+    from rl_pool.config import PoolConfig
+    from rl_pool.protocol import layout, pool
+
+    (tmp_path / "agent.npz").write_bytes((single_pool / "best.npz").read_bytes())
+    d = tmp_path / "pool"
+    args = ["--pool-dir", d, "--member", 0, "--pool-size", 1, *SHORT, "--quiet", "--init-agent", "agent.npz"]
+    rl_pool("train", *args, "--iterations", 1, check=0, cwd=tmp_path)
+    rl_pool("train", *args, "--iterations", 2, check=0, cwd=tmp_path)  # the same relative name: resumed
+    cfg = pool.read_config(layout.Paths(str(d)))
+    assert cfg.init_agent == str(tmp_path / "agent.npz")
+    agent, again = make_initial(cfg)  # what a late member builds: the same bytes
+    assert agent.to_bytes() == (d / "iterations" / "000000" / "initial.npz").read_bytes() and again == cfg
+    (tmp_path / "agent.npz").write_bytes((single_pool / "iterations" / "000000" / "initial.npz").read_bytes())
+    with pytest.raises(UsageError, match=r"is not the agent this pool was made from .* it changed since"):
+        make_initial(cfg)
+    elsewhere = rl_pool("train", *args[:-1], str(single_pool), "--iterations", 3, check=2, cwd=tmp_path)
+    assert "was made with --init-agent" in elsewhere.stderr and elsewhere.stderr.count("\n") == 1
+    plain = rl_pool("train", "--pool-dir", single_pool, "--pool-size", 1, "--iterations", 3, *SHORT,
+                    "--init-agent", "agent.npz", check=2, cwd=tmp_path)
+    assert "was made without --init-agent" in plain.stderr and plain.stderr.count("\n") == 1
+    assert PoolConfig().init_agent_sha256 == ""
+
+
 @pytest.mark.parametrize("what, says", [
-    ("mlp", "is an agent for Swimmer-v5 {}, 60 steps, linear (exp link); this pool trains Swimmer-v5 {}, 60 steps, "
-            "mlp 64,64 (exp link)"),
+    ("mlp", "is an agent for Swimmer-v5 {}, 60 steps, 8 observations, 2 actions, linear (exp link); this pool "
+            "trains Swimmer-v5 {}, 60 steps, 8 observations, 2 actions, mlp 64,64 (exp link)"),
     ("fifo", "a FIFO, not a regular file"),
     ("missing", "no agent file or pool directory at"),
-    ("garbage", "agent"),
+    ("garbage", "garbage.npz: not an rl-pool agent file"),
 ])
 def test_a_starting_agent_that_does_not_fit_is_refused_in_one_line_and_nothing_is_made(single_pool, tmp_path,
                                                                                        what, says):

@@ -113,6 +113,12 @@ def test_finalists_play_the_episodes_that_follow_and_the_best_mean_over_all_of_t
     assert res["picked"]["episodes"] == 5
     again = json.loads(rl_pool("evaluate", out, "--episodes", 5, "--seed", 2_000_000, "--json", check=0).stdout)
     assert again["mean_return"] == pytest.approx(res["picked"]["mean_return"], rel=1e-12)
+    written = json.loads((tmp_path / "final.json").read_bytes())["candidates"]
+    assert [c.get("first_mean_return") for c in written] == [c.get("first_mean_return") for c in res["candidates"]]
+    # more finalists than candidates: every candidate plays on, and the record says how many did
+    every = json.loads(rl_pool("pick", pool_dir, "--top", 0, "--episodes", 1, "--finalists", 99, "--final-episodes",
+                               1, "--out", tmp_path / "every.npz", "--json", check=0).stdout)
+    assert every["finalists"] == len(every["candidates"]) and all(c["finalist"] for c in every["candidates"])
     text = rl_pool("pick", pool_dir, "--top", 0, "--episodes", 2, "--finalists", 2, "--final-episodes", 3,
                    "--out", out, check=0).stdout
     assert "the 2 best of them on 3 more (reset seeds 2000002..2000004)" in text

@@ -81,9 +81,11 @@ from gymnasium.envs.mujoco.swimmer_v5 import SwimmerEnv
 
 
 def make(**kwargs):
-    """Swimmer, except that once the member's stop handler is in place, making it stalls the way a
-    first `import mujoco` does, and an interrupt comes out as an ImportError, as from a C extension."""
-    if signal.getsignal(signal.SIGINT) is not signal.default_int_handler:
+    """Swimmer, except that making it stalls the way a first `import mujoco` does (when STALL_WHEN is
+    "always", or "latched" and the member's stop handler is in place), and an interrupt comes out
+    as an ImportError, as from a C extension."""
+    latched = type(getattr(signal.getsignal(signal.SIGTERM), "__self__", None)).__name__ == "SignalLatch"
+    if os.environ["STALL_WHEN"] == "always" or latched:
         with open(os.environ["STALL_MARK"], "w") as fh:
             fh.write(str(os.getpid()))
         try:
@@ -97,23 +99,35 @@ gymnasium.register("Stall-v0", entry_point=make, max_episode_steps=60)
 '''
 
 
-def test_ctrl_c_while_the_first_env_is_made_stops_the_member_instead_of_failing_it(tmp_path):
-    """Ctrl-C that lands while a member makes its first environment and comes out of that code as
-    an ImportError: the member exits 130 and its heartbeat says stopped, not failed."""
+@pytest.mark.parametrize("when", ["latched", "always"], ids=["resumed-pool", "new-pool"])
+def test_ctrl_c_while_an_env_is_made_stops_instead_of_reporting_a_bad_environment(tmp_path, when):
+    """Ctrl-C that lands while an environment is made and comes out of that code as an ImportError:
+    exit 130, no traceback, and no "cannot make environment". In a member at work (its stop
+    handler in place) the heartbeat says stopped; while a new pool is made (before any member
+    runs) the command stops as on any Ctrl-C."""
     (tmp_path / "stall.py").write_text(_STALLING_ENV)
     mark = tmp_path / "stalled"
-    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(tmp_path), ROOT]), "STALL_MARK": str(mark)}
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(tmp_path), ROOT]), "STALL_MARK": str(mark),
+           "STALL_WHEN": when}
     d = tmp_path / "pool"
+    # SIGINT as a terminal delivers it, even where this test runs with SIGINT ignored
     proc = spawn("train", "--pool-dir", d, "--env", "stall:Stall-v0", "--member", 0, "--pool-size", 1,
-                 "--iterations", 2, *SHORT, "--quiet", env=env)
-    deadline = time.monotonic() + 120
-    while not mark.exists() and proc.poll() is None and time.monotonic() < deadline:
-        time.sleep(0.05)
-    assert mark.exists(), proc.communicate(timeout=10)
-    time.sleep(0.1)  # the pid is written: the member is asleep inside the env's constructor
-    proc.send_signal(signal.SIGINT)
-    _, err = proc.communicate(timeout=60)
+                 "--iterations", 2, *SHORT, "--quiet", env=env,
+                 preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
+    try:
+        deadline = time.monotonic() + 120
+        while not mark.exists() and proc.poll() is None and time.monotonic() < deadline:
+            time.sleep(0.05)
+        assert mark.exists(), proc.communicate(timeout=10)
+        time.sleep(0.1)  # the pid is written: the process is asleep inside the env's constructor
+        proc.send_signal(signal.SIGINT)
+        _, err = proc.communicate(timeout=60)
+    finally:
+        proc.kill()
     assert proc.returncode == 128 + signal.SIGINT, err
-    assert "Traceback" not in err
-    doc = json.loads((d / "members" / "member-000.json").read_text())
-    assert doc["state"] == "stopped" and "SIGINT" in doc["error"], doc
+    assert "Traceback" not in err and "cannot make environment" not in err
+    if when == "latched":
+        doc = json.loads((d / "members" / "member-000.json").read_text())
+        assert doc["state"] == "stopped" and "SIGINT" in doc["error"], doc
+    else:
+        assert err.strip() == "rl-pool: interrupted"

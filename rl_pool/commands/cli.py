@@ -33,7 +33,7 @@ def _json_object(text: str) -> dict:
 def _add_dataclass_options(parser, cls, skip=(), required=()):
     group = parser.add_argument_group(cls.__doc__.splitlines()[0].rstrip("."))
     for f in fields(cls):
-        if f.name in skip:
+        if f.name in skip or f.metadata.get("internal"):
             continue
         default = f.default if f.default is not MISSING else f.default_factory()
         kind = _json_object if isinstance(default, dict) else type(default)

@@ -47,7 +47,8 @@ _stop = SignalLatch(Stopped)
 
 
 def make_initial(cfg: PoolConfig):
-    """``(initial agent, config with the episode length resolved)``; deterministic in ``cfg``."""
+    """``(initial agent, config with the episode length resolved)``; deterministic in ``cfg`` (with
+    ``--init-agent``, in the file whose hash ``cfg`` records once the pool is made)."""
     kwargs = dict(cfg.env_kwargs)
     if cfg.max_episode_steps:
         kwargs["max_episode_steps"] = cfg.max_episode_steps
@@ -64,25 +65,36 @@ def make_initial(cfg: PoolConfig):
     meta = AgentMeta(cfg.env, dict(cfg.env_kwargs), info.max_episode_steps, info.obs_dim, info.act_dim,
                      tuple(float(x) for x in info.low), tuple(float(x) for x in info.high), cfg.spec)
     if cfg.init_agent:
-        return _starting_agent(cfg.init_agent, meta), cfg
+        agent, digest = _starting_agent(cfg.init_agent, meta, cfg.init_agent_sha256)
+        return agent, dataclasses.replace(cfg, init_agent=os.path.abspath(cfg.init_agent), init_agent_sha256=digest)
     return Agent.initial(meta, seed=cfg.seed, shape=cfg.init_shape or None), cfg
 
 
-def _starting_agent(target: str, meta: AgentMeta) -> Agent:
-    """``--init-agent``: the agent at ``target`` (a file, or a pool's best) with fresh Adam moments;
-    refused unless it is an agent for the task and policy the pool is made for."""
+def _starting_agent(target: str, meta: AgentMeta, expected_sha256: str) -> tuple[Agent, str]:
+    """``--init-agent``: ``(the agent at target with fresh Adam moments, the sha256 of its file)``;
+    refused unless it is an agent for the task and policy the pool is made for and, once the pool
+    records one, the file whose hash it recorded (every member builds iteration 0 alike)."""
     from rl_pool.commands.evaluate import resolve_agent
 
-    path, data = resolve_agent(target)
+    try:
+        path, data = resolve_agent(target)
+    except UsageError as exc:
+        raise UsageError(f"--init-agent: {exc}") from None
+    digest = layout.sha256(data)
+    if expected_sha256 and digest != expected_sha256:
+        raise UsageError(f"--init-agent {target} is not the agent this pool was made from (sha256 "
+                         f"{digest[:12]}…, the pool recorded {expected_sha256[:12]}…): it changed since")
     agent = Agent.from_bytes(data, source=path)
     if agent.meta != meta:
         def says(m):
             return (f"{m.env} {json.dumps(m.env_kwargs, sort_keys=True)}, {m.max_episode_steps} steps, "
-                    f"{m.spec.describe()}")
-        raise UsageError(f"--init-agent {target} is an agent for {says(agent.meta)}; this pool trains "
-                         f"{says(meta)}")
+                    f"{m.obs_dim} observations, {m.act_dim} actions, {m.spec.describe()}")
+        theirs, ours = says(agent.meta), says(meta)
+        if theirs == ours:
+            theirs += " (other action bounds)"
+        raise UsageError(f"--init-agent {target} is an agent for {theirs}; this pool trains {ours}")
     zeros = {k: np.zeros_like(v) for k, v in agent.params.items()}
-    return agent.evolve(opt_m=zeros, opt_v=dict(zeros), opt_t=0.0)
+    return agent.evolve(opt_m=zeros, opt_v=dict(zeros), opt_t=0.0), digest
 
 
 def check_arguments(paths: layout.Paths, requested: dict, members: list[MemberConfig]) -> PoolConfig:

@@ -161,6 +161,7 @@ def pick(pool_dir: str, top: int = 20, episodes: int = 20, seed: int = DEFAULT_S
         # The round's maximum is partly luck too: the leaders play on, on the episodes that follow.
         more = [seed + episodes + k for k in range(final_episodes)]
         leaders = ranked[:finalists]
+        finalists = len(leaders)  # as many as there were candidates
         extra = _run_all([ok[j][1] for j in leaders], more, mode, workers)
         for j, rets in zip(leaders, extra, strict=True):
             rows[j] |= {"first_mean_return": rows[j]["mean_return"], "finalist": True}
@@ -180,9 +181,9 @@ def pick(pool_dir: str, top: int = 20, episodes: int = 20, seed: int = DEFAULT_S
     if out is None:
         pool.make_room(paths, npz, meta)
     fsutil.atomic_write(npz, data)
-    fsutil.write_json(meta, summary | {"candidates": [{k: r[k] for k in ("iteration", "agent_sha256", "eval_return",
-                                                                          "mean_return", "std_return", "episodes")}
-                                                      for r in rows]})
+    keys = ("iteration", "agent_sha256", "eval_return", "mean_return", "std_return", "episodes", "finalist",
+            "first_mean_return")
+    fsutil.write_json(meta, summary | {"candidates": [{k: r[k] for k in keys if k in r} for r in rows]})
     return summary | {"candidates": rows, "skipped": skipped}
 
 

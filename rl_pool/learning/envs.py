@@ -15,7 +15,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from rl_pool.errors import EnvError
+from rl_pool.errors import EnvError, Stopped
 
 
 @dataclass(frozen=True)
@@ -95,14 +95,26 @@ def make(env_id: str, env_kwargs: dict | None = None, render_mode: str | None = 
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
             wrapped = gym.make(env_id, disable_env_checker=True, **kwargs)
-    except gym.error.Error as exc:
-        raise EnvError(f"unknown or unusable environment {env_id!r}: {exc}") from None
-    except (TypeError, ValueError, ImportError, OSError) as exc:
-        raise EnvError(f"cannot make environment {env_id!r} with {kwargs}: {exc}") from None
     except Exception as exc:  # a user's own module or environment (--env mypkg:MyRobot-v0) may raise anything
+        _raise_interrupt(exc)
+        if isinstance(exc, gym.error.Error):
+            raise EnvError(f"unknown or unusable environment {env_id!r}: {exc}") from None
+        if isinstance(exc, (TypeError, ValueError, ImportError, OSError)):
+            raise EnvError(f"cannot make environment {env_id!r} with {kwargs}: {exc}") from None
         raise EnvError(f"cannot make environment {env_id!r} with {kwargs}: {type(exc).__name__}: {exc}") from None
     info = check(env_id, wrapped)
     return wrapped.unwrapped, info
+
+
+def _raise_interrupt(exc: BaseException) -> None:
+    """Raise the Ctrl-C or stop signal behind ``exc``, if any: code that a signal cut short (a C
+    extension's import) can report it as its own error, which must not read as a bad environment."""
+    seen = set()
+    while exc is not None and id(exc) not in seen:
+        if isinstance(exc, (KeyboardInterrupt, Stopped)):
+            raise exc
+        seen.add(id(exc))
+        exc = exc.__cause__ or exc.__context__
 
 
 def check(env_id: str, env) -> EnvInfo:
