@@ -29,7 +29,7 @@ from .helpers import agent, history, make_pool, run_pool
 
 #: The random-kill test's own pool length: longer than the shared reference's, so 20 kills spread
 #: over it with room to spare.
-CHAOS_ITERS = 12
+CHAOS_ITERS = 16
 
 
 def _in_time(fn, seconds=5.0):
