@@ -110,10 +110,15 @@ def test_ctrl_c_while_an_env_is_made_stops_instead_of_reporting_a_bad_environmen
     env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(tmp_path), ROOT]), "STALL_MARK": str(mark),
            "STALL_WHEN": when}
     d = tmp_path / "pool"
-    # SIGINT as a terminal delivers it, even where this test runs with SIGINT ignored
-    proc = spawn("train", "--pool-dir", d, "--env", "stall:Stall-v0", "--member", 0, "--pool-size", 1,
-                 "--iterations", 2, *SHORT, "--quiet", env=env,
-                 preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
+    # SIGINT as a terminal delivers it, even where this test runs with SIGINT ignored: the child
+    # inherits the default disposition (set here for the spawn, not in the child: no Python code
+    # may run between fork and exec in a process with JAX's threads)
+    old = signal.signal(signal.SIGINT, signal.SIG_DFL)
+    try:
+        proc = spawn("train", "--pool-dir", d, "--env", "stall:Stall-v0", "--member", 0, "--pool-size", 1,
+                     "--iterations", 2, *SHORT, "--quiet", env=env)
+    finally:
+        signal.signal(signal.SIGINT, old)
     try:
         deadline = time.monotonic() + 120
         while not mark.exists() and proc.poll() is None and time.monotonic() < deadline:
