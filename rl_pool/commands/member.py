@@ -21,14 +21,12 @@ import sys
 import time
 import traceback
 
-import numpy as np
-
 from rl_pool import fsutil
 from rl_pool.commands import status, tb
 from rl_pool.config import MemberConfig, PoolConfig
 from rl_pool.errors import SignalLatch, Stopped, UsageError
 from rl_pool.learning import envs, trainer
-from rl_pool.maths import policy
+from rl_pool.maths import learner, policy
 from rl_pool.maths.agent import Agent, AgentMeta
 from rl_pool.protocol import barrier, deposits, heartbeat, layout, pool, selection
 
@@ -93,8 +91,8 @@ def _starting_agent(target: str, meta: AgentMeta, expected_sha256: str) -> tuple
         if theirs == ours:
             theirs += " (other action bounds)"
         raise UsageError(f"--init-agent {target} is an agent for {theirs}; this pool trains {ours}")
-    zeros = {k: np.zeros_like(v) for k, v in agent.params.items()}
-    return agent.evolve(opt_m=zeros, opt_v=dict(zeros), opt_t=0.0), digest
+    fresh = learner.init_opt_state(agent.params)
+    return agent.evolve(opt_m=fresh.m, opt_v=fresh.v, opt_t=fresh.t), digest
 
 
 def check_arguments(paths: layout.Paths, requested: dict, members: list[MemberConfig]) -> PoolConfig:
@@ -174,14 +172,7 @@ def run(pool_dir: str, requested: dict, mc: MemberConfig, quiet: bool = False) -
     try:
         old = _stop.install((signal.SIGTERM, signal.SIGINT, signal.SIGHUP))
         hb.start()
-        try:
-            _loop(paths, cfg, mc, hb, last + 1)
-        except Exception:
-            # A signal that lands inside a C extension (Ctrl-C while MuJoCo is first imported)
-            # can come out as that code's own error (an ImportError): with a stop pending, the
-            # error is the stop's doing, so the member stops instead of reporting a failure.
-            _stop.check()
-            raise
+        _loop(paths, cfg, mc, hb, last + 1)
     except Stopped as exc:
         log.warning("stopped by %s; deposits on disk are whole, restart to resume", exc)
         hb.stop("stopped", error=f"stopped by {exc}")
