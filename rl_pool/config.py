@@ -92,6 +92,9 @@ class PoolConfig:
                              added=True)
     rate_decay: float = opt(0.5, "with --rate-patience: the factor a plateau multiplies the learning rates by "
                                  "(0 < F < 1)", added=True)
+    rate_anneal: int = opt(0, "a linear decay of every member's learning rate: iteration I trains at "
+                              "max(1/100, 1 - (I-1)/K) times its rate (0: no decay); K is about the iterations "
+                              "the run will make", added=True)
     best_score: str = opt("first", "what ranks the best selected agent (the one --revert-after goes back to): "
                                    "its score in the iteration it was selected, or the mean of that and every "
                                    "later re-score of it as the parent (a lucky first score wears off; with "
@@ -195,6 +198,8 @@ class PoolConfig:
             raise UsageError(f"--revert-after must be >= 0, got {self.revert_after}")
         if self.rate_patience < 0:
             raise UsageError(f"--rate-patience must be >= 0, got {self.rate_patience}")
+        if self.rate_anneal < 0:
+            raise UsageError(f"--rate-anneal must be >= 0, got {self.rate_anneal}")
         if not (math.isfinite(self.rate_decay) and 0.0 < self.rate_decay < 1.0):
             raise UsageError(f"--rate-decay must be in (0, 1), got {self.rate_decay}")
         try:

@@ -646,6 +646,19 @@ def test_without_rate_patience_the_records_carry_no_rate():
         PoolConfig.merged({"rate_decay": 0.7}, None)
 
 
+@pytest.mark.parametrize("k, want", [
+    (0, [1.0] * 7),  # no decay
+    (4, [1.0, 0.75, 0.5, 0.25, 0.01, 0.01, 0.01]),  # 1 - (I-1)/4, down to the floor
+    (400, [1.0 - (i - 1) / 400 for i in range(1, 8)])])
+def test_rate_anneal_decays_linearly_to_the_floor(k, want):
+    cfg = _cfg("none", n=2, rate_anneal=k)
+    got = [selection.anneal_scale(cfg, i) for i in range(1, 8)]
+    assert got == pytest.approx(want, rel=1e-15, abs=0)
+    assert selection.anneal_scale(cfg, 10 ** 6) == (selection.MIN_RATE_SCALE if k else 1.0)
+    with pytest.raises(UsageError, match="--rate-anneal must be >= 0"):
+        _cfg("none", rate_anneal=-1)
+
+
 # ---------------------------------------------------------------- sharper branches after a lock (--sharpen)
 @pytest.mark.parametrize("winner, want", [
     ("parent", [1.0, 10 ** (1 / 3), 10 ** (2 / 3), 10.0]), ("fallback", [1.0, 10 ** (1 / 3), 10 ** (2 / 3), 10.0]),

@@ -485,10 +485,12 @@ def test_a_momentum_pool_killed_and_restarted_replays_its_merges(tmp_path):
 
 def _rate_pool(d, kill_at=None):
     """A 2-member pool whose rates follow its progress (``--rate-patience 1``): every iteration
-    without a new best halves them. With ``kill_at``, member 1 is killed with SIGKILL while it trains
-    in an iteration >= ``kill_at`` and started again."""
+    without a new best halves them, and a linear decay over 10 iterations (``--rate-anneal 10``) scales
+    them further. With ``kill_at``, member 1 is killed with SIGKILL while it trains in an iteration >=
+    ``kill_at`` and started again."""
     iters = 8
-    args = ["--pool-size", 2, "--iterations", iters, *SHORT, "--quiet", "--seed", 1, "--rate-patience", 1]
+    args = ["--pool-size", 2, "--iterations", iters, *SHORT, "--quiet", "--seed", 1, "--rate-patience", 1,
+            "--rate-anneal", 10]
 
     _run_with_a_kill(d, [0.03, 0.3], args, 1, kill_at)
     return [json.loads((d / f"iterations/{i:06d}/selected.json").read_text()) for i in range(iters + 1)]
@@ -496,9 +498,10 @@ def _rate_pool(d, kill_at=None):
 
 def test_rates_that_follow_the_pool_train_every_branch_and_replay_after_a_kill(tmp_path):
     """``--rate-patience``: each selection's rate follows from the one before and whether it found a new
-    best; each member trains at its rate times the scale its parent selection carries (retraining a
-    branch in this process at that rate gives its deposit's parameters exactly, at the rate given
-    other ones); a member killed mid-iteration and started again replays the same selections."""
+    best; each member trains at its rate times the scale its parent selection carries and the
+    iteration's share under ``--rate-anneal`` (retraining a branch in this process at that rate gives
+    its deposit's parameters exactly, at the rate given other ones); a member killed mid-iteration and
+    started again replays the same selections."""
     from rl_pool.config import PoolConfig
     from rl_pool.learning import envs, trainer
 
@@ -511,9 +514,11 @@ def test_rates_that_follow_the_pool_train_every_branch_and_replay_after_a_kill(t
         i = sel["iteration"]
         for m in range(2):
             doc = json.loads((d / f"iterations/{i:06d}/member-{m:03d}.json").read_text())
-            assert doc["rate_scale"] == selection.rate_scale(prev) and doc["learning_rate"] == (0.03, 0.3)[m]
-        scales.append(selection.rate_scale(prev))
+            assert doc["learning_rate"] == (0.03, 0.3)[m]
+            assert doc["rate_scale"] == selection.rate_scale(prev) * (1.0 - (i - 1) / 10)
+        scales.append(doc["rate_scale"])
     assert min(scales) < 1.0, scales
+    assert any(selection.rate_scale(prev) == 1.0 for prev in sels[1:-1])  # the decay alone, somewhere
     i = next(k for k, s in enumerate(scales, start=1) if s < 1.0)
     parent = Agent.load(d / sels[i - 1]["agent"])
     dep = Agent.load(d / f"iterations/{i:06d}/member-001.npz")

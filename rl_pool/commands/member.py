@@ -278,7 +278,8 @@ def _loop(paths: layout.Paths, cfg: PoolConfig, mc: MemberConfig, hb: heartbeat.
                 start = selected if sharpen == 1.0 else selected.evolve(
                     params=policy.sharpened(selected.params, selected.spec, sharpen))
                 hb.set(state="training", iteration=i)
-                scale = selection.rate_scale(prev)  # --rate-patience: the pool's share of every rate
+                # --rate-patience and --rate-anneal: the pool's share of every rate
+                scale = selection.rate_scale(prev) * selection.anneal_scale(cfg, i)
                 tr = trainer.train(start, train_envs, cfg, lr * scale, me, i)
                 hb.update(state="evaluating")  # shown by the next periodic beat: one write less per iteration
                 ev = trainer.evaluate(tr.agent, env_list, cfg, i)
@@ -294,7 +295,7 @@ def _loop(paths: layout.Paths, cfg: PoolConfig, mc: MemberConfig, hb: heartbeat.
                               "parent_eval_seconds": pe.seconds, "parent_eval_steps": pe.steps}
                     parent |= _score_fallback(paths, cfg, prev, like, env_list, i)
                 metrics = ev.summary() | parent | {
-                    "learning_rate": lr, **({"rate_scale": scale} if cfg.rate_patience else {}),
+                    "learning_rate": lr, **({"rate_scale": scale} if cfg.rate_patience or cfg.rate_anneal else {}),
                     **({"sharpen": sharpen} if cfg.sharpen != 1.0 else {}),
                     "train_steps": tr.steps, "train_seconds": tr.seconds,
                     "train_return_mean": sum(tr.episode_returns) / len(tr.episode_returns),

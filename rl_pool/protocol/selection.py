@@ -296,6 +296,16 @@ def rate_scale(previous: dict) -> float:
     return float(min(max(c, MIN_RATE_SCALE), 1.0)) if finite(c) else 1.0
 
 
+def anneal_scale(cfg, iteration: int) -> float:
+    """The share of its learning rate every member trains with in ``iteration`` under
+    ``--rate-anneal K``: 1 in iteration 1, falling linearly to :data:`MIN_RATE_SCALE` by
+    iteration K + 1 and staying there (1 without the option). A function of the iteration alone,
+    so a restarted member trains as an uninterrupted one would."""
+    if not cfg.rate_anneal:
+        return 1.0
+    return max(MIN_RATE_SCALE, 1.0 - (iteration - 1) / cfg.rate_anneal)
+
+
 def recorded_rate_scale(sel: dict) -> float | None:
     """The rate scale a selection record carries, for reports (status, TensorBoard): None when it
     has no ``rate`` (a pool without ``--rate-patience``), else :func:`rate_scale`."""
