@@ -115,6 +115,10 @@ class PoolConfig:
                               "from that agent with its Beta shapes' excess over 1 times F^(I/(N-1)): less action "
                               "noise, so the sampled return REINFORCE climbs comes closer to the mean-action score "
                               "selection compares (1: never)", added=True)
+    revert_sharpen: float = opt(1.0, "with --revert-after: a revert sends every member back to the best agent "
+                                     "with its Beta shapes' excess over 1 times F: less action noise from there "
+                                     "on, kept where the branches then find a new best, so it compounds only "
+                                     "while it pays (1: never)", added=True)
     init_agent: str = opt("", "start the pool from this agent (an agent file, or a pool directory: its best "
                               "agent) instead of a fresh one: its weights and observation statistics, with fresh "
                               "Adam moments; it must be an agent for the same task and policy (--init-shape then "
@@ -190,6 +194,12 @@ class PoolConfig:
             raise UsageError("--sharpen needs --link exp")
         if self.sharpen != 1.0 and self.selection != "parent":
             raise UsageError("--sharpen needs --selection parent (it follows iterations that kept the parent)")
+        if not (math.isfinite(self.revert_sharpen) and 1.0 <= self.revert_sharpen <= 1000.0):
+            raise UsageError(f"--revert-sharpen must be in [1, 1000], got {self.revert_sharpen}")
+        if self.revert_sharpen != 1.0 and self.link != "exp":
+            raise UsageError("--revert-sharpen needs --link exp")
+        if self.revert_sharpen != 1.0 and not self.revert_after:
+            raise UsageError("--revert-sharpen needs --revert-after (it sharpens the agent a revert goes back to)")
         if self.parent_patience < 0:
             raise UsageError(f"--parent-patience must be >= 0, got {self.parent_patience}")
         if self.parent_patience and self.selection != "parent":

@@ -659,6 +659,22 @@ def test_rate_anneal_decays_linearly_to_the_floor(k, want):
         _cfg("none", rate_anneal=-1)
 
 
+@pytest.mark.parametrize("winner", ["revert", "branch", "parent", "merge", "carried", None])
+def test_revert_sharpen_sharpens_every_member_after_a_revert_only(winner):
+    previous = PREVIOUS | ({"winner": winner} if winner else {})
+    cfg = _cfg("none", n=3, selection="branches", revert_after=5, revert_sharpen=10.0)
+    want = 10.0 if winner == "revert" else 1.0
+    assert [selection.sharpening(cfg, previous, m) for m in range(3)] == [want] * 3
+    plain = _cfg("none", n=3, selection="branches", revert_after=5)
+    assert [selection.sharpening(plain, previous, m) for m in range(3)] == [1.0] * 3
+    for kw, why in (({"revert_after": 5, "revert_sharpen": 0.5}, "--revert-sharpen must be in"),
+                    ({"revert_after": 5, "revert_sharpen": float("nan")}, "--revert-sharpen must be in"),
+                    ({"revert_sharpen": 3.0}, "--revert-sharpen needs --revert-after"),
+                    ({"revert_after": 5, "revert_sharpen": 3.0, "link": "softplus"}, "--revert-sharpen needs --link exp")):
+        with pytest.raises(UsageError, match=why):
+            _cfg("none", **kw)
+
+
 # ---------------------------------------------------------------- sharper branches after a lock (--sharpen)
 @pytest.mark.parametrize("winner, want", [
     ("parent", [1.0, 10 ** (1 / 3), 10 ** (2 / 3), 10.0]), ("fallback", [1.0, 10 ** (1 / 3), 10 ** (2 / 3), 10.0]),

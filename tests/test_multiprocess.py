@@ -534,6 +534,53 @@ def test_rates_that_follow_the_pool_train_every_branch_and_replay_after_a_kill(t
     assert [{k: s.get(k) for k in keys} for s in again] == [{k: s.get(k) for k in keys} for s in sels]
 
 
+def _revert_sharpen_pool(d, kill_at=None):
+    """A 2-member pool of competing branches that goes back to its best after every iteration without
+    a new one (``--revert-after 1``) with less action noise (``--revert-sharpen 4``); with ``kill_at``, member 1
+    is killed with SIGKILL while it trains in an iteration >= ``kill_at`` and started again."""
+    iters = 8
+    args = ["--pool-size", 2, "--iterations", iters, *SHORT, "--quiet", "--seed", 1, "--selection", "branches",
+            "--revert-after", 1, "--revert-sharpen", 4]
+    _run_with_a_kill(d, [0.03, 0.3], args, 1, kill_at)
+    return [json.loads((d / f"iterations/{i:06d}/selected.json").read_text()) for i in range(iters + 1)]
+
+
+def test_a_revert_with_less_noise_trains_every_branch_from_the_sharpened_best_and_replays_after_a_kill(tmp_path):
+    """``--revert-sharpen``: after a revert every member starts from the best agent with its Beta shapes'
+    excess over 1 times 4 and says so in its deposit (retraining member 1 here from the sharpened best
+    gives its deposit's parameters exactly); after other iterations no member sharpens; a member killed
+    mid-iteration and started again replays the same selections."""
+    from rl_pool.config import PoolConfig
+    from rl_pool.learning import envs, trainer
+    from rl_pool.maths import policy
+
+    d = tmp_path / "whole"
+    sels = _revert_sharpen_pool(d)
+    cfg = PoolConfig.from_json(json.loads((d / "pool.json").read_text()))
+    reverted = []
+    for prev, sel in itertools.pairwise(sels):
+        i = sel["iteration"]
+        got = [json.loads((d / f"iterations/{i:06d}/member-{m:03d}.json").read_text())["sharpen"] for m in range(2)]
+        if prev.get("winner") == "revert":
+            assert got == [4.0, 4.0]
+            reverted.append(i)
+        else:
+            assert got == [1.0, 1.0]
+    assert reverted, [s.get("winner") for s in sels]
+    i = reverted[0]
+    best = Agent.load(d / sels[i - 1]["agent"])
+    assert best.to_bytes() == Agent.load(d / sels[i - 1]["best"]["agent"]).to_bytes()  # a revert goes back to the best
+    dep = Agent.load(d / f"iterations/{i:06d}/member-001.npz")
+    env_list = [envs.make(cfg.env, dict(cfg.env_kwargs, max_episode_steps=cfg.max_episode_steps))[0]
+                for _ in range(max(cfg.batch_episodes, cfg.eval_episodes))]
+    sharp = best.evolve(params=policy.sharpened(best.params, best.spec, 4.0))
+    for name, value in trainer.train(sharp, env_list, cfg, 0.3, 1, i).agent.params.items():
+        np.testing.assert_array_equal(value, dep.params[name])
+    again = _revert_sharpen_pool(tmp_path / "killed", kill_at=reverted[0])
+    keys = ("winner", "member", "eval_return", "agent_sha256", "best", "considered")
+    assert [{k: s.get(k) for k in keys} for s in again] == [{k: s.get(k) for k in keys} for s in sels]
+
+
 def _sharpen_pool(d, kill_at=None):
     """A 3-member pool that sharpens its branches after the parent is kept (``--sharpen 4``); with
     ``kill_at``, member 2 is killed with SIGKILL while it trains in an iteration >= ``kill_at``."""

@@ -296,7 +296,7 @@ def _loop(paths: layout.Paths, cfg: PoolConfig, mc: MemberConfig, hb: heartbeat.
                     parent |= _score_fallback(paths, cfg, prev, like, env_list, i)
                 metrics = ev.summary() | parent | {
                     "learning_rate": lr, **({"rate_scale": scale} if cfg.rate_patience or cfg.rate_anneal else {}),
-                    **({"sharpen": sharpen} if cfg.sharpen != 1.0 else {}),
+                    **({"sharpen": sharpen} if cfg.sharpen != 1.0 or cfg.revert_sharpen != 1.0 else {}),
                     "train_steps": tr.steps, "train_seconds": tr.seconds,
                     "train_return_mean": sum(tr.episode_returns) / len(tr.episode_returns),
                     "eval_steps": ev.steps, "eval_seconds": ev.seconds,

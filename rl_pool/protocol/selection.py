@@ -408,7 +408,10 @@ def sharpening(cfg: PoolConfig, previous: dict, member: int) -> float:
     (``--sharpen`` F): ``F ** (member / (N - 1))`` when ``previous`` kept the parent or a merge's
     fallback (a lock: every branch scored below it), else 1. A ladder from the agent as it is
     (member 0) to F times sharper, so the pool tries several noise levels at once and selection
-    keeps the one whose branch scored best."""
+    keeps the one whose branch scored best. After a revert, ``--revert-sharpen`` F for every member:
+    the pool goes back to its best agent with less action noise."""
+    if previous.get("winner") == "revert":
+        return float(cfg.revert_sharpen)
     if cfg.sharpen == 1.0 or cfg.pool_size < 2 or previous.get("winner") not in ("parent", "fallback"):
         return 1.0
     return float(cfg.sharpen ** (member / (cfg.pool_size - 1)))
