@@ -1,6 +1,7 @@
 """Parallel evaluation under spawn, custom workers, replay."""
 
 import json
+import os
 
 import numpy as np
 import pytest
@@ -91,3 +92,41 @@ def test_replay_writes_an_animated_gif(trained, tmp_path):
     im = Image.open(slow)
     assert im.n_frames == 5 and im.info["duration"] == 200
     assert "5 frames at 5.0 fps" in proc.stdout
+
+
+def test_action_noise_benchmark_scores_mean_actions_as_a_plain_gymnasium_loop(tmp_path, capsys):
+    """``benchmarks/action_noise.py``: the mean-action column equals an independent TimeLimit-wrapped
+    gymnasium loop on the same reset seeds; sharper agents report a larger concentration; bad
+    input gets one line and exit code 2."""
+    import importlib.util
+
+    import gymnasium as gym
+
+    from .helpers import agent
+
+    script = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "benchmarks", "action_noise.py")
+    spec = importlib.util.spec_from_file_location("action_noise_benchmark", script)
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    a = agent(3)
+    a.save(tmp_path / "a.npz")
+    assert mod.main([str(tmp_path / "a.npz"), "--episodes", "2", "--sharpen", "1,10"]) == 0
+    rows = [line.split(" | ") for line in capsys.readouterr().out.splitlines()[1:]]
+    want = []
+    for k in range(2):
+        env = gym.make("Swimmer-v5", max_episode_steps=60)
+        obs, _ = env.reset(seed=1_000_000 + k)
+        total, done = 0.0, False
+        while not done:
+            obs, r, term, trunc, _ = env.step(a.act(obs))
+            total += r
+            done = term or trunc
+        want.append(total)
+    assert [r[1] for r in rows] == ["1", "10"]
+    assert float(rows[0][2].split(" ± ")[0]) == pytest.approx(np.mean(want), abs=0.051)
+    assert float(rows[1][4]) > float(rows[0][4])
+    for bad in (["--episodes", "0"], ["--sharpen", "0.5"], ["--sharpen", "x"]):
+        assert mod.main([str(tmp_path / "a.npz"), *bad]) == 2
+        assert capsys.readouterr().err.count("\n") == 1
+    assert mod.main([str(tmp_path / "missing.npz")]) == 2
+    assert capsys.readouterr().err.count("\n") == 1
