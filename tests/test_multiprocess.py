@@ -534,6 +534,35 @@ def test_rates_that_follow_the_pool_train_every_branch_and_replay_after_a_kill(t
     assert [{k: s.get(k) for k in keys} for s in again] == [{k: s.get(k) for k in keys} for s in sels]
 
 
+def _check_sharpened_starts(d, sels, n, want, member):
+    """Each deposit of the pool ``d`` records the factor ``want(previous selection)`` gives its member
+    (a list of n), and retraining ``member`` at rate 0.3 from its iteration's start sharpened that much,
+    in the first iteration that sharpens, gives its deposit's parameters exactly. Returns the
+    iterations that sharpened."""
+    from rl_pool.config import PoolConfig
+    from rl_pool.learning import envs, trainer
+    from rl_pool.maths import policy
+
+    cfg = PoolConfig.from_json(json.loads((d / "pool.json").read_text()))
+    sharpened = []
+    for prev, sel in itertools.pairwise(sels):
+        i = sel["iteration"]
+        got = [json.loads((d / f"iterations/{i:06d}/member-{m:03d}.json").read_text())["sharpen"] for m in range(n)]
+        assert got == pytest.approx(want(prev), rel=1e-12), i
+        if got != [1.0] * n:
+            sharpened.append(i)
+    assert sharpened, [s.get("winner") for s in sels]
+    i = sharpened[0]
+    start = Agent.load(d / sels[i - 1]["agent"])
+    dep = Agent.load(d / f"iterations/{i:06d}/member-{member:03d}.npz")
+    env_list = [envs.make(cfg.env, dict(cfg.env_kwargs, max_episode_steps=cfg.max_episode_steps))[0]
+                for _ in range(max(cfg.batch_episodes, cfg.eval_episodes))]
+    sharp = start.evolve(params=policy.sharpened(start.params, start.spec, want(sels[i - 1])[member]))
+    for name, value in trainer.train(sharp, env_list, cfg, 0.3, member, i).agent.params.items():
+        np.testing.assert_array_equal(value, dep.params[name])
+    return sharpened
+
+
 def _revert_sharpen_pool(d, kill_at=None):
     """A 2-member pool of competing branches that goes back to its best after every iteration without
     a new one (``--revert-after 1``) with less action noise (``--revert-sharpen 4``); with ``kill_at``, member 1
@@ -550,32 +579,12 @@ def test_a_revert_with_less_noise_trains_every_branch_from_the_sharpened_best_an
     excess over 1 times 4 and says so in its deposit (retraining member 1 here from the sharpened best
     gives its deposit's parameters exactly); after other iterations no member sharpens; a member killed
     mid-iteration and started again replays the same selections."""
-    from rl_pool.config import PoolConfig
-    from rl_pool.learning import envs, trainer
-    from rl_pool.maths import policy
-
     d = tmp_path / "whole"
     sels = _revert_sharpen_pool(d)
-    cfg = PoolConfig.from_json(json.loads((d / "pool.json").read_text()))
-    reverted = []
-    for prev, sel in itertools.pairwise(sels):
-        i = sel["iteration"]
-        got = [json.loads((d / f"iterations/{i:06d}/member-{m:03d}.json").read_text())["sharpen"] for m in range(2)]
-        if prev.get("winner") == "revert":
-            assert got == [4.0, 4.0]
-            reverted.append(i)
-        else:
-            assert got == [1.0, 1.0]
-    assert reverted, [s.get("winner") for s in sels]
+    reverted = _check_sharpened_starts(d, sels, 2, lambda prev: [4.0, 4.0] if prev.get("winner") == "revert"
+                                       else [1.0, 1.0], member=1)
     i = reverted[0]
-    best = Agent.load(d / sels[i - 1]["agent"])
-    assert best.to_bytes() == Agent.load(d / sels[i - 1]["best"]["agent"]).to_bytes()  # a revert goes back to the best
-    dep = Agent.load(d / f"iterations/{i:06d}/member-001.npz")
-    env_list = [envs.make(cfg.env, dict(cfg.env_kwargs, max_episode_steps=cfg.max_episode_steps))[0]
-                for _ in range(max(cfg.batch_episodes, cfg.eval_episodes))]
-    sharp = best.evolve(params=policy.sharpened(best.params, best.spec, 4.0))
-    for name, value in trainer.train(sharp, env_list, cfg, 0.3, 1, i).agent.params.items():
-        np.testing.assert_array_equal(value, dep.params[name])
+    assert sels[i - 1]["winner"] == "revert" and sels[i - 1]["agent"] == sels[i - 1]["best"]["agent"]
     again = _revert_sharpen_pool(tmp_path / "killed", kill_at=reverted[0])
     keys = ("winner", "member", "eval_return", "agent_sha256", "best", "considered")
     assert [{k: s.get(k) for k in keys} for s in again] == [{k: s.get(k) for k in keys} for s in sels]
@@ -596,31 +605,10 @@ def test_sharper_branches_after_a_kept_parent_train_from_the_files_and_replay_af
     shapes' excess over 1 times 4^(m/2) and says so in its deposit (retraining member 2 here from the
     sharpened parent gives its deposit's parameters exactly); after other iterations no member
     sharpens; a member killed mid-iteration and started again replays the same selections."""
-    from rl_pool.config import PoolConfig
-    from rl_pool.learning import envs, trainer
-    from rl_pool.maths import policy
-
     d = tmp_path / "whole"
     sels = _sharpen_pool(d)
-    cfg = PoolConfig.from_json(json.loads((d / "pool.json").read_text()))
-    kept = []
-    for prev, sel in itertools.pairwise(sels):
-        i = sel["iteration"]
-        got = [json.loads((d / f"iterations/{i:06d}/member-{m:03d}.json").read_text())["sharpen"] for m in range(3)]
-        if prev.get("winner") in ("parent", "fallback"):
-            assert got == pytest.approx([1.0, 2.0, 4.0], rel=1e-12)
-            kept.append(i)
-        else:
-            assert got == [1.0, 1.0, 1.0]
-    assert kept, [s.get("winner") for s in sels]
-    i = kept[0]
-    parent = Agent.load(d / sels[i - 1]["agent"])
-    dep = Agent.load(d / f"iterations/{i:06d}/member-002.npz")
-    env_list = [envs.make(cfg.env, dict(cfg.env_kwargs, max_episode_steps=cfg.max_episode_steps))[0]
-                for _ in range(max(cfg.batch_episodes, cfg.eval_episodes))]
-    sharp = parent.evolve(params=policy.sharpened(parent.params, parent.spec, 4.0))
-    for name, value in trainer.train(sharp, env_list, cfg, 0.3, 2, i).agent.params.items():
-        np.testing.assert_array_equal(value, dep.params[name])
+    kept = _check_sharpened_starts(d, sels, 3, lambda prev: [1.0, 2.0, 4.0]
+                                   if prev.get("winner") in ("parent", "fallback") else [1.0, 1.0, 1.0], member=2)
     again = _sharpen_pool(tmp_path / "killed", kill_at=kept[0])
     keys = ("winner", "member", "eval_return", "agent_sha256", "merge", "considered", "parent")
     assert [{k: s.get(k) for k in keys} for s in again] == [{k: s.get(k) for k in keys} for s in sels]
