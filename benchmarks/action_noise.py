@@ -6,7 +6,7 @@ REINFORCE climbs the return of the actions a policy samples; selection and the r
 the return of its mean actions. For each agent (optionally sharpened: every Beta shape's excess
 over 1 times F, as ``--sharpen`` and ``--revert-sharpen`` do) the script plays the same episodes
 (reset seeds 1000000+k) both ways and prints the two mean returns, and the median Beta
-concentration alpha + beta over the states of the first mean-action episode, with the standard
+concentration alpha + beta over the states and action dimensions of the first mean-action episode, with the standard
 deviation of an action in (0, 1) that a symmetric Beta of that concentration has. Episodes run one
 after another in this process.
 """

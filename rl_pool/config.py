@@ -94,7 +94,7 @@ class PoolConfig:
                                  "(0 < F < 1)", added=True)
     rate_anneal: int = opt(0, "a linear decay of every member's learning rate: iteration I trains at "
                               "max(1/100, 1 - (I-1)/K) times its rate (0: no decay); K is about the iterations "
-                              "the run will make", added=True)
+                              "the run will make; with --rate-patience the two shares multiply", added=True)
     best_score: str = opt("first", "what ranks the best selected agent (the one --revert-after goes back to): "
                                    "its score in the iteration it was selected, or the mean of that and every "
                                    "later re-score of it as the parent (a lucky first score wears off; with "

@@ -301,6 +301,8 @@ MOMENTUM_CASES = [
     ("after a fallback took over: none", 0.5, MERGED_BEFORE | {"winner": "fallback"}, None),
     ("after a revert: none", 0.5, MERGED_BEFORE | {"winner": "revert"}, None),
     ("after an iteration without a valid deposit: none", 0.5, MERGED_BEFORE | {"winner": "carried"}, None),
+    ("after a merge of sharpened starts: none (its step holds the sharpening)", 0.5,
+     MERGED_BEFORE | {"merge": {"kind": "momentum", "sharpened_starts": True}}, None),
 ]
 
 
@@ -673,6 +675,16 @@ def test_revert_sharpen_sharpens_every_member_after_a_revert_only(winner):
                     ({"revert_after": 5, "revert_sharpen": 3.0, "link": "softplus"}, "--revert-sharpen needs --link exp")):
         with pytest.raises(UsageError, match=why):
             _cfg("none", **kw)
+
+
+def test_a_merge_from_sharpened_starts_says_so():
+    rows = [(0, 5.0, 4.0, None), (1, 7.0, None, None), (2, 6.0, None, None)]
+    for cfg, previous, want in ((_cfg("momentum", n=4, revert_after=3, revert_sharpen=2.0), PREVIOUS | {"winner": "revert"}, True),
+                                (_cfg("momentum", n=4, sharpen=4.0), PREVIOUS | {"winner": "parent"}, True),
+                                (_cfg("momentum", n=4, sharpen=4.0), PREVIOUS | {"winner": "branch"}, None),
+                                (_cfg("momentum", n=4), PREVIOUS | {"winner": "revert"}, None)):
+        out, _ = selection.decide(cfg, 1, previous, [_report(*r) for r in rows], [], "complete")
+        assert out["winner"] == "merge" and out["merge"].get("sharpened_starts") is want
 
 
 # ---------------------------------------------------------------- sharper branches after a lock (--sharpen)

@@ -7,6 +7,7 @@ import pytest
 
 from rl_pool.commands import cli, presets
 from rl_pool.config import MemberConfig, PoolConfig
+from rl_pool.errors import UsageError
 
 POOL_FIELDS = {f.name for f in fields(PoolConfig)}
 KNOWN = POOL_FIELDS | {f.name for f in fields(MemberConfig)} | {"learning_rates"} | {
@@ -146,3 +147,14 @@ def test_a_merged_option_replaces_the_plain_one_in_pools_that_merge(tmp_path, mo
     for extra, want in cases:
         _, cfg = _launch_config("plain-and-merged", tmp_path, *extra)
         assert (cfg.selection, cfg.merge, cfg.parent_patience) == want, extra
+
+
+def test_hoppers_sharpening_at_reverts_leaves_when_there_are_no_reverts_or_no_exp_link(tmp_path):
+    """``--preset hopper`` sharpens at reverts; a pool of it without reverts or with the softplus link
+    is made without that (not refused for an option the user never gave); given explicitly, it is."""
+    assert _launch_config("hopper", tmp_path)[1].revert_sharpen == 3.0
+    assert _launch_config("hopper", tmp_path, "--revert-after", "0")[1].revert_sharpen == 1.0
+    assert _launch_config("hopper", tmp_path, "--link", "softplus")[1].revert_sharpen == 1.0
+    assert _launch_config("hopper", tmp_path, "--revert-sharpen", "2")[1].revert_sharpen == 2.0
+    with pytest.raises(UsageError, match="--revert-sharpen needs --revert-after"):
+        _launch_config("hopper", tmp_path, "--revert-after", "0", "--revert-sharpen", "2")

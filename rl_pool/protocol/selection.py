@@ -397,6 +397,8 @@ def _merge_or_pick(cfg: PoolConfig, out: dict, previous: dict, considered: list[
                       "scale": merge_scale(cfg.merge, len(chosen), out.get("merge_scale", 1.0)),
                       "statistics_from": [c["member"] for c in considered]},
             "evaluated": evaluated}
+    if any(sharpening(cfg, previous, m) != 1.0 for m in range(cfg.pool_size)):
+        out["merge"]["sharpened_starts"] = True  # its step holds the sharpening: no momentum from it
     momentum = merge_momentum(cfg, previous)
     if momentum is not None:
         out["merge"]["momentum"] = momentum
@@ -421,11 +423,15 @@ def merge_momentum(cfg: PoolConfig, previous: dict) -> dict | None:
     """The momentum term of a ``--merge momentum`` merge made after ``previous``: ``{"beta",
     "from"}``, where ``from`` names the agent the previous iteration started from, so the merge adds
     ``beta`` times the step from that agent to the parent (:func:`rl_pool.maths.merge.merge_agents`).
-    Only when ``previous`` was itself a merge: a step that was a pick, a revert or the parent kept
-    is not a direction the pool's branches agreed on. None for other rules, with beta 0, or when
+    Only when ``previous`` was itself a merge of branches that started from its parent as it was: a
+    step that was a pick, a revert or the parent kept is not a direction the pool's branches agreed
+    on, and one from sharpened starts (``--sharpen``, ``--revert-sharpen``) holds the sharpening,
+    which momentum would apply again. None for other rules, with beta 0, or when
     the previous selection does not name its parent's file."""
     if cfg.merge != "momentum" or not cfg.merge_momentum or previous.get("winner") != "merge":
         return None
+    if isinstance(previous.get("merge"), dict) and previous["merge"].get("sharpened_starts"):
+        return None  # its branches started sharpened (--sharpen, --revert-sharpen): not a step to repeat
     grand = previous.get("parent")
     if not (isinstance(grand, dict) and isinstance(grand.get("agent"), str)
             and isinstance(grand.get("agent_sha256"), str)):
