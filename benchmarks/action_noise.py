@@ -31,14 +31,16 @@ def _floats(text: str) -> list[float]:
     return out
 
 
-def play(agent, env, seed: int, rng: np.random.Generator | None) -> tuple[float, list[float]]:
+def play(agent, env, seed: int, rng: np.random.Generator | None, shapes: bool = False) -> tuple[float, list[float]]:
     """One episode of at most the agent's episode length (the env is unwrapped: no time limit of
-    its own): its return and the concentration alpha + beta of every action dimension at each state."""
+    its own): its return and, with ``shapes``, the concentration alpha + beta of every action
+    dimension at each state."""
     obs, _ = env.reset(seed=seed)
     total, conc = 0.0, []
     for _ in range(agent.meta.max_episode_steps):
-        alpha, beta = agent.beta_params(obs)
-        conc.extend(np.ravel(alpha + beta).tolist())
+        if shapes:
+            alpha, beta = agent.beta_params(obs)
+            conc.extend(np.ravel(alpha + beta).tolist())
         action = agent.act(obs, rng=rng, deterministic=rng is None)
         obs, reward, term, trunc, _ = env.step(action)
         total += float(reward)
@@ -68,11 +70,11 @@ def main(argv=None) -> int:
             for f in factors:
                 agent = base if f == 1.0 else base.evolve(params=policy.sharpened(base.params, base.spec, f))
                 rng = np.random.default_rng(0)
-                means, samples, conc = [], [], None
+                means, samples, conc = [], [], []
                 for k in range(args.episodes):
-                    ret, c = play(agent, env, 1_000_000 + k, None)
+                    ret, c = play(agent, env, 1_000_000 + k, None, shapes=k == 0)
                     means.append(ret)
-                    conc = c if conc is None else conc
+                    conc += c
                     samples.append(play(agent, env, 1_000_000 + k, rng)[0])
                 med = float(np.median(conc))
                 print(f"{path} | {f:g} | {np.mean(means):.1f} ± {np.std(means):.1f} | "

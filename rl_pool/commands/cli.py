@@ -82,10 +82,12 @@ def _apply_preset(args) -> dict:
     for key, value in presets.merged_options(chosen, size, merge, selection).items():
         if getattr(args, key, None) is None:
             setattr(args, key, value)
-    # a preset's sharpening at reverts goes only where there are reverts to sharpen, with the exp link
-    if "revert_sharpen" in unset and getattr(args, "revert_sharpen", None) is not None and (
-            not getattr(args, "revert_after", None) or (getattr(args, "link", None) or PoolConfig.link) != "exp"):
-        args.revert_sharpen = None
+    def final(name):
+        value = getattr(args, name, None)
+        return getattr(PoolConfig, name) if value is None else value
+
+    for key in presets.needless(chosen, final) & unset:  # the preset's, not the user's: left out
+        setattr(args, key, None)
     args.preset_set = {name for name in unset if getattr(args, name, None) is not None}
     return chosen
 

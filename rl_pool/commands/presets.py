@@ -106,6 +106,15 @@ def merged_options(preset: dict, pool_size: int, merge: str, selection: str) -> 
     return out
 
 
+def needless(preset: dict, value) -> set[str]:
+    """The preset's options that the pool's other settings (``value(name)``: the final value of an
+    option) leave nothing to do, and that the pool's checks would refuse for it: sharpening at
+    reverts (``revert_sharpen``) without reverts or without the ``exp`` link."""
+    if "revert_sharpen" in preset and (not value("revert_after") or value("link") != "exp"):
+        return {"revert_sharpen"}
+    return set()
+
+
 def member_learning_rate(preset: dict, member: int, pool_size: int) -> float | None:
     """The preset's rate for one member (:func:`learning_rates`)."""
     lrs = learning_rates(preset, pool_size)
