@@ -27,6 +27,12 @@ import sys
 import tempfile
 import time
 
+from rl_pool.errors import SignalLatch
+
+#: Ctrl-C as KeyboardInterrupt, kept: one that lands in a finaliser is only printed and lost, so
+#: the poll loop of :func:`run_pool` raises it again (``check``).
+_interrupt = SignalLatch(lambda signum: KeyboardInterrupt())
+
 
 def _progress(pool_dir: str) -> list[dict]:
     from rl_pool.commands import status
@@ -47,6 +53,7 @@ def run_pool(pool_dir: str, size: int, seed: int, threshold: float, max_iteratio
     hit = None
     try:
         while hit is None:
+            _interrupt.check()
             done = proc.poll() is not None
             rows = _progress(pool_dir)
             hit = next((r for r in rows if r["best_so_far"] is not None and r["best_so_far"] >= threshold), None)
@@ -102,6 +109,7 @@ def main(argv=None) -> int:
     if args.env:
         options = ["--env", args.env, *options]
     sizes = [int(x) for x in args.sizes.split(",")]
+    _interrupt.install((signal.SIGINT,))
     work = args.workdir or tempfile.mkdtemp(prefix="rl-pool-learning-")
     print(f"# {' '.join(options) or 'defaults'}; threshold {args.threshold}; pools in {work}", flush=True)
     print(f"{'N':>3} {'seed':>4} {'iterations':>10} {'env steps':>12} {'minutes':>8}  best", flush=True)

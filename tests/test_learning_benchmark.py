@@ -9,6 +9,8 @@ import subprocess
 import sys
 import time
 
+import pytest
+
 SCRIPT = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "benchmarks", "learning.py")
 spec = importlib.util.spec_from_file_location("learning_benchmark", SCRIPT)
 learning = importlib.util.module_from_spec(spec)
@@ -121,3 +123,45 @@ def test_ctrl_c_stops_the_running_pool_with_one_line_and_no_traceback(tmp_path):
                                         "so far stay"]
     assert not os.path.exists(f"/proc/{pid}") or "zombie" in open(f"/proc/{pid}/status").read().lower()
     assert json.loads(open(heartbeat).read())["state"] == "stopped"
+
+
+@pytest.mark.filterwarnings("ignore::pytest.PytestUnraisableExceptionWarning")  # the lost KeyboardInterrupt
+def test_a_ctrl_c_lost_in_a_finaliser_still_stops_the_running_pool(tmp_path, monkeypatch):
+    """Python runs a signal handler between any two bytecodes, a ``__del__``'s too, and an exception
+    raised there is only printed: the first Ctrl-C's KeyboardInterrupt can be lost. The latch keeps
+    it, so the poll loop raises it and stops the real pool it is running (no member left behind)."""
+    from rl_pool.errors import SignalLatch
+
+    latch = SignalLatch(lambda signum: KeyboardInterrupt())
+    monkeypatch.setattr(learning, "_interrupt", latch)
+    old = latch.install((signal.SIGINT,))
+    try:
+        class Finaliser:
+            def __del__(self):
+                os.kill(os.getpid(), signal.SIGINT)  # the handler runs here; its exception is lost
+
+        Finaliser()
+        time.sleep(0.1)
+        assert latch.signum == signal.SIGINT  # the interrupt happened and nothing raised it here
+        pool = str(tmp_path / "pool")
+        t0 = time.monotonic()
+        try:
+            learning.run_pool(pool, 1, 0, 1e9, 1000, ["--env", "Swimmer-v5", "--train-episodes", "2",
+                                                      "--eval-episodes", "1", "--max-episode-steps", "50"])
+        except KeyboardInterrupt:
+            pass
+        else:
+            raise AssertionError("run_pool ran on after a lost Ctrl-C")
+    finally:
+        latch.restore(old)
+    assert time.monotonic() - t0 < 60
+    left = []
+    for pid in filter(str.isdigit, os.listdir("/proc")):
+        try:
+            with open(f"/proc/{pid}/cmdline", "rb") as fh:
+                cmd = fh.read().decode(errors="replace")
+        except OSError:
+            continue
+        if pool in cmd and "zombie" not in open(f"/proc/{pid}/status").read().lower():
+            left.append(cmd)
+    assert not left  # the launcher and its members are gone
