@@ -109,7 +109,6 @@ def main(argv=None) -> int:
     if args.env:
         options = ["--env", args.env, *options]
     sizes = [int(x) for x in args.sizes.split(",")]
-    _interrupt.install((signal.SIGINT,))
     work = args.workdir or tempfile.mkdtemp(prefix="rl-pool-learning-")
     print(f"# {' '.join(options) or 'defaults'}; threshold {args.threshold}; pools in {work}", flush=True)
     print(f"{'N':>3} {'seed':>4} {'iterations':>10} {'env steps':>12} {'minutes':>8}  best", flush=True)
@@ -227,6 +226,7 @@ def summarize_files(paths: list[str], seeds: list[int] | None = None) -> int:
 
 
 if __name__ == "__main__":
+    _interrupt.install((signal.SIGINT,))  # the script's own process only, never a caller's
     try:
         sys.exit(main())
     except KeyboardInterrupt:  # run_pool has stopped the pool it was running
