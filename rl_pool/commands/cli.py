@@ -82,6 +82,7 @@ def _apply_preset(args) -> dict:
     for key, value in presets.merged_options(chosen, size, merge, selection).items():
         if getattr(args, key, None) is None:
             setattr(args, key, value)
+
     def final(name):
         value = getattr(args, name, None)
         return getattr(PoolConfig, name) if value is None else value
