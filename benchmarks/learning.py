@@ -47,7 +47,8 @@ def run_pool(pool_dir: str, size: int, seed: int, threshold: float, max_iteratio
              options: list[str], poll: float = 2.0) -> dict:
     """Run one pool until its best evaluated return reaches ``threshold``; what it took."""
     cmd = [sys.executable, "-m", "rl_pool", "launch", "--pool-dir", pool_dir, "--pool-size", str(size),
-           "--seed", str(seed), "--iterations", str(max_iterations), "--quiet", *options]
+           "--seed", str(seed), "--iterations", str(max_iterations), "--quiet",
+           "--no-pick", *options]  # the time to the threshold is the measure: no pick after a capped run
     t0 = time.monotonic()
     proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, start_new_session=True)
     hit = None

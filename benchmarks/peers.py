@@ -24,14 +24,17 @@ in ``--cores`` processes, one torch thread each, one episode per candidate. The 
 filter is a ``VecNormalize`` wrapper whose statistics AsyncEval merges from its workers; a
 checkpoint saves them beside the model (``model.save`` and ``VecNormalize.save``).
 
-rl-pool runs as ``rl-pool launch --preset TASK --pool-size CORES`` (``--members N``: N members
-sharing the cores; options after ``--`` are added), stopped with SIGINT after the budget.
+rl-pool runs as ``rl-pool launch --preset TASK --pool-size CORES --minutes BUDGET`` (``--members
+N``: N members sharing the cores; options after ``--`` are added): the launch stops its members at
+the end of the budget, and a preset that ends with a pick (``--pick``) stops them early enough for
+the pick to fit in the budget. A launch still running a minute after the budget gets SIGINT.
 
 The sides run one after the other (``--order``), each with every core. Each clock starts when
 its side's process is started (imports, JIT and environment set-up count). At 1/4, 1/2 and
 the whole budget each side's agent is kept: the agent the side had at that time (ARS: its
 policy after the last update finished by then; rl-pool: the pool's ``best.npz`` as last read
-by then, polled every ``--poll`` seconds). After both runs every checkpoint is re-scored on
+by then, polled every ``--poll`` seconds, and at the whole budget the launch's pick where it made
+one). After both runs every checkpoint is re-scored on
 the same ``--episodes`` fresh episodes (reset seeds ``--eval-seed`` + k, which neither side
 trains on): rl-pool's with ``rl-pool evaluate``, ARS's with a loop of deterministic actions on
 observations normalised with the checkpoint's statistics. Env steps are every step the side
@@ -394,16 +397,38 @@ def _read_best(pool_dir: str) -> tuple[bytes, dict] | None:
     return data, doc
 
 
+#: Seconds past the budget that a launch gets to stop on its own before it is sent SIGINT.
+LAUNCH_GRACE = 60.0
+
+
+def _read_pick(pool_dir: str, since: float) -> tuple[bytes, dict] | None:
+    """The launch's pick (picked.npz and picked.json, made after ``since``) when the two agree."""
+    try:
+        if os.stat(os.path.join(pool_dir, "picked.json")).st_mtime < since:
+            return None
+        with open(os.path.join(pool_dir, "picked.npz"), "rb") as fh:
+            data = fh.read()
+        with open(os.path.join(pool_dir, "picked.json")) as fh:
+            doc = json.load(fh)
+    except (OSError, ValueError):
+        return None
+    picked = doc.get("picked") if isinstance(doc, dict) else None
+    if not isinstance(picked, dict) or picked.get("agent_sha256") != hashlib.sha256(data).hexdigest():
+        return None
+    return data, picked
+
+
 def run_rlpool(a, workdir: str) -> dict:
-    """The rl-pool side: launch, keep best.npz as it was at each mark, SIGINT after the budget."""
+    """The rl-pool side: launch with the budget, keep best.npz as it was at each mark (at the whole
+    budget the launch's pick if it made one), SIGINT if the launch runs on past the budget."""
     d = os.path.join(workdir, "rl-pool")
     pool_dir = os.path.join(d, "pool")
     os.makedirs(d, exist_ok=True)
     seconds = a.minutes * 60
     marks = [(f, f * seconds) for f in FRACTIONS]
     cmd = [sys.executable, "-m", "rl_pool", "launch", "--preset", a.task, "--pool-dir", pool_dir,
-           "--pool-size", str(a.members), "--seed", str(a.seed), "--iterations", "100000000", "--quiet",
-           *a.options]
+           "--pool-size", str(a.members), "--seed", str(a.seed), "--iterations", "100000000",
+           "--minutes", repr(a.minutes), "--quiet", *a.options]
     log = os.path.join(d, "launch.log")
     checkpoints, latest, seen = [], None, None
     t0 = time.time()
@@ -412,9 +437,14 @@ def run_rlpool(a, workdir: str) -> dict:
         try:
             while True:
                 now = time.time() - t0
-                while marks and now > marks[0][1]:
+                exited = proc.poll() is not None
+                # the launch stops itself at the budget (a pick within it): its last agent is the whole budget's
+                while marks and (now > marks[0][1] if marks[0][0] < 1.0 else exited and now > seconds / 2):
                     fraction, mark = marks.pop(0)
                     name = f"ck-{round(fraction * 100)}.npz"
+                    picked = _read_pick(pool_dir, t0) if fraction == 1.0 and exited else None
+                    if picked is not None:
+                        latest = {"data": picked[0], "doc": picked[1] | {"picked": True}, "seconds": now}
                     if latest is not None:
                         with open(os.path.join(d, name), "wb") as out:
                             out.write(latest["data"])
@@ -422,12 +452,17 @@ def run_rlpool(a, workdir: str) -> dict:
                                         "agent": name if latest else None,
                                         "agent_seconds": latest["seconds"] if latest else None,
                                         "iteration": latest["doc"].get("iteration") if latest else None,
-                                        "own_eval_return": latest["doc"].get("eval_return") if latest else None})
+                                        "own_eval_return": latest["doc"].get("eval_return") if latest else None,
+                                        "picked": bool(latest and latest["doc"].get("picked"))})
+                    what = "the pick" if latest and latest["doc"].get("picked") else "best.npz"
                     print(f"rl-pool: {LABELS[fraction]} of the budget ({mark / 60:.2f} min): "
-                          + (f"best.npz of iteration {latest['doc'].get('iteration')}" if latest
+                          + (f"{what} of iteration {latest['doc'].get('iteration')}" if latest
                              else "no best.npz yet"), file=sys.stderr, flush=True)
-                if not marks or proc.poll() is not None:
+                if not marks or exited:
                     break
+                if now > seconds + LAUNCH_GRACE:
+                    _stop(proc)  # it was told the budget; this is the fallback
+                    continue
                 try:
                     st = os.stat(os.path.join(pool_dir, "best.json"))
                     key = (st.st_mtime_ns, st.st_size, st.st_ino)
@@ -437,13 +472,16 @@ def run_rlpool(a, workdir: str) -> dict:
                     got = _read_best(pool_dir)
                     if got is not None:
                         latest, seen = {"data": got[0], "doc": got[1], "seconds": now}, key
-                time.sleep(max(0.01, min(a.poll, marks[0][1] - (time.time() - t0) + 0.001)))
+                time.sleep(max(0.01, min(a.poll, marks[0][1] - (time.time() - t0) + 0.001)) if marks[0][0] < 1.0
+                           else a.poll)
         finally:
             _stop(proc)
     run = {"side": "rl-pool", "env": a.env, "preset": a.task, "command": cmd[1:], "checkpoints": checkpoints,
            "seconds": time.time() - t0, "cores": a.cores, "seed": a.seed}
     if marks:
         run["error"] = f"rl-pool launch exited ({proc.returncode}) before the budget: {_tail(log)}"
+    elif proc.returncode not in (0, -signal.SIGINT, 130):
+        run["error"] = f"rl-pool launch failed ({proc.returncode}): {_tail(log)}"
     # env steps by each mark: the pool's history, on this host's clock
     try:
         from rl_pool.commands import status
@@ -525,7 +563,8 @@ def report(a, runs: dict, workdir: str) -> list[dict]:
                          "agent_minutes": None if c.get("agent_seconds") is None else round(c["agent_seconds"] / 60, 3),
                          "env_steps": c.get("env_steps"),
                          "agent": (f"update {c['updates']}" if side == "ars" and c.get("model") else
-                                   f"iteration {c['iteration']}" if side == "rl-pool" and c.get("agent") else None),
+                                   f"iteration {c['iteration']}" + (", picked" if c.get("picked") else "")
+                                   if side == "rl-pool" and c.get("agent") else None),
                          "mean_return": mean, "std_return": std, "returns": c.get("returns"),
                          "episodes": a.episodes, "eval_seed": a.eval_seed, "cores": a.cores, "seed": a.seed,
                          "budget_minutes": a.minutes,
@@ -574,13 +613,13 @@ def main(argv=None) -> int:
     print("# re-scoring every checkpoint", file=sys.stderr, flush=True)
     rescore(a, workdir, runs)
     rows = report(a, runs, workdir)
-    print(f"{'task':<15} {'side':<8} {'minutes':>7} {'env steps':>10}  {'agent, made at min':<22} "
+    print(f"{'task':<15} {'side':<8} {'minutes':>7} {'env steps':>10}  {'agent, made at min':<30} "
           f"re-scored return ({a.episodes} episodes)")
     for r in rows:
         score = "-" if r["mean_return"] is None else f"{r['mean_return']:.1f} ± {r['std_return']:.1f}"
         agent = "-" if r["agent"] is None else f"{r['agent']}, {r['agent_minutes']:.2f}"
         print(f"{r['task']:<15} {r['side']:<8} {r['minutes']:>7.2f} {_fmt_steps(r['env_steps']):>10}  "
-              f"{agent:<22} {score}")
+              f"{agent:<30} {score}")
     if a.out:
         versions = _versions()
         with open(a.out, "a") as fh:

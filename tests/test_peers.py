@@ -84,3 +84,24 @@ def test_the_script_loads_neither_torch_nor_sb3_and_refuses_in_one_line():
     res = subprocess.run([sys.executable, SCRIPT, "--task", "Humanoid-v4"], capture_output=True, text=True)
     assert res.returncode == 2 and res.stdout == ""
     assert res.stderr.startswith("peers: unknown task 'Humanoid-v4'") and res.stderr.count("\n") == 1
+
+
+def test_the_rl_pool_side_takes_the_launchs_pick_at_the_whole_budget(peers, tmp_path):
+    """A real launch told the budget: it stops its members in time for its pick, and the last
+    checkpoint is that pick (the earlier ones the pool's best.npz of the moment)."""
+    import hashlib
+    import json
+
+    from .conftest import SHORT
+
+    a = peers.parse(["--task", "swimmer", "--order", "rl-pool", "--minutes", "0.5", "--episodes", "2", "--",
+                     *SHORT, "--pick"])
+    run = peers.run_rlpool(a, str(tmp_path))
+    assert "error" not in run, run.get("error")
+    assert "--minutes" in run["command"] and run["seconds"] < 0.5 * 60 + 15
+    *early, last = run["checkpoints"]
+    assert [c["fraction"] for c in run["checkpoints"]] == [0.25, 0.5, 1.0]
+    assert last["picked"] and not any(c["picked"] for c in early)
+    picked = json.loads((tmp_path / "rl-pool" / "pool" / "picked.json").read_bytes())["picked"]
+    data = (tmp_path / "rl-pool" / last["agent"]).read_bytes()
+    assert hashlib.sha256(data).hexdigest() == picked["agent_sha256"] and last["iteration"] == picked["iteration"]

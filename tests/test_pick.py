@@ -3,6 +3,7 @@
 import hashlib
 import json
 import os
+import time
 from pathlib import Path
 
 import numpy as np
@@ -199,3 +200,56 @@ def test_bad_arguments_get_one_line(pool_dir, args, message):
 def test_not_a_pool_gets_one_line(tmp_path):
     proc = rl_pool("pick", tmp_path, check=2)
     assert proc.stderr.count("\n") == 1 and "Traceback" not in proc.stderr
+
+
+def test_a_launch_ends_with_a_pick_of_the_pool_it_ran(tmp_path):
+    d = tmp_path / "picked-at-the-end"
+    proc = rl_pool("launch", "--pool-dir", d, "--pool-size", 2, "--learning-rates", "0.03,0.3", "--iterations", 3,
+                   "--selection", "branches", *SHORT, "--pick", "--quiet", check=0)
+    res = json.loads((d / "picked.json").read_bytes())
+    shas = {s["agent_sha256"] for s in (json.loads((d / "iterations" / f"{i:06d}" / "selected.json").read_bytes())
+                                        for i in range(4))}
+    assert res["picked"]["agent_sha256"] == _sha(d / "picked.npz") and res["picked"]["agent_sha256"] in shas
+    assert {c["agent_sha256"] for c in res["candidates"]} == shas  # fewer than pick's default top 20: all
+    assert (res["episodes"], res["seed"], res["top"]) == (20, 2_000_000, 20)
+    p = res["picked"]
+    assert f"picked the agent of iteration {p['iteration']} on 20 held-out episodes: mean {p['mean_return']:.2f}" \
+        in proc.stdout
+    again = json.loads(rl_pool("pick", d, "--out", tmp_path / "again.npz", "--json", check=0).stdout)
+    assert again["picked"]["agent_sha256"] == p["agent_sha256"]  # what `rl-pool pick POOL` picks
+
+
+def test_a_launch_with_a_budget_stops_in_time_for_its_pick_and_a_launch_resumes(tmp_path):
+    d = tmp_path / "budget"
+    budget = 0.5  # minutes: the pick of 21 x 20 short episodes keeps about 20 s of it
+    t0 = time.monotonic()
+    proc = rl_pool("launch", "--pool-dir", d, "--pool-size", 2, "--iterations", 100000, *SHORT,
+                   "--minutes", budget, "--pick", "--quiet", check=0)
+    took = time.monotonic() - t0
+    assert f"(stopped at the budget of {budget:g} minutes)" in proc.stdout and "picked the agent" in proc.stdout
+    # the pick fits in the budget by the pool's pace; a loaded machine gets a few seconds of slack
+    assert took < 60 * budget + 15, (took, proc.stdout)
+    st = json.loads(rl_pool("status", d, "--json", check=0).stdout)
+    done = st["iterations_completed"]
+    assert 1 <= done < 100000
+    assert all(m["state"] != "training" for m in st["members"])
+    assert json.loads((d / "picked.json").read_bytes())["picked"]["agent_sha256"] == _sha(d / "picked.npz")
+    # stopped as Ctrl-C stops it: the next launch resumes the pool, not a new one
+    rl_pool("launch", "--pool-dir", d, "--iterations", done + 1, "--quiet", check=0)
+    assert json.loads(rl_pool("status", d, "--json", check=0).stdout)["iterations_completed"] == done + 1
+
+
+def test_the_budget_keeps_time_for_the_pick_by_the_pools_pace():
+    from rl_pool.commands.launch import PICK_MARGIN, PICK_OVERHEAD, Budget
+
+    plain = Budget(100.0, 1.0, None)
+    assert not plain.due(5e4, now=159.9) and plain.due(5e4, now=160.0)
+    never = Budget(100.0, None, 1e6)
+    assert not never.due(1.0, now=1e9)
+    with_pick = Budget(100.0, 1.0, 420_000)  # HalfCheetah: 21 candidates x 20 episodes x 1000 steps
+    keep = PICK_OVERHEAD + PICK_MARGIN * 420_000 / 50_000
+    assert with_pick.reserve(50_000) == pytest.approx(keep)
+    assert not with_pick.due(50_000, now=160.0 - keep - 0.01) and with_pick.due(50_000, now=160.0 - keep)
+    # before the pool has a pace, a slow one is assumed: the pick is not squeezed out
+    assert with_pick.reserve(None) == pytest.approx(PICK_OVERHEAD + PICK_MARGIN * 420_000 / 5000)
+    assert with_pick.due(None, now=100.0)  # more than the whole minute

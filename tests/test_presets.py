@@ -10,7 +10,7 @@ from rl_pool.config import MemberConfig, PoolConfig
 from rl_pool.errors import UsageError
 
 POOL_FIELDS = {f.name for f in fields(PoolConfig)}
-KNOWN = POOL_FIELDS | {f.name for f in fields(MemberConfig)} | {"learning_rates"} | {
+KNOWN = POOL_FIELDS | {f.name for f in fields(MemberConfig)} | {"learning_rates", "pick"} | {
     f"merged_{name}" for name in POOL_FIELDS}
 
 
@@ -158,3 +158,28 @@ def test_hoppers_sharpening_at_reverts_leaves_when_there_are_no_reverts_or_no_ex
     assert _launch_config("hopper", tmp_path, "--revert-sharpen", "2")[1].revert_sharpen == 2.0
     with pytest.raises(UsageError, match="--revert-sharpen needs --revert-after"):
         _launch_config("hopper", tmp_path, "--revert-after", "0", "--revert-sharpen", "2")
+
+
+@pytest.mark.parametrize(("extra", "sharpen"), [
+    ((), 1.0), (("--pool-size", "8"), 3.0), (("--pool-size", "16"), 3.0),
+    (("--pool-size", "8", "--merge", "none"), 1.0),  # a pool that never merges has no reverts either
+    (("--pool-size", "8", "--revert-after", "0"), 1.0),  # no reverts: left out, not refused
+    (("--pool-size", "8", "--revert-sharpen", "2"), 2.0),
+])
+def test_halfcheetah_pools_that_merge_sharpen_at_reverts(extra, sharpen, tmp_path):
+    assert _launch_config("halfcheetah", tmp_path, *extra)[1].revert_sharpen == sharpen
+
+
+def test_a_preset_that_ends_with_a_pick_and_the_option_that_wins(tmp_path):
+    def pick(*argv):
+        args = cli.build_parser().parse_args(["launch", "--pool-dir", str(tmp_path), *argv])
+        cli._apply_preset(args)
+        return bool(args.pick)
+
+    assert pick("--preset", "halfcheetah") and pick("--preset", "halfcheetah", "--pool-size", "8")
+    assert not pick("--preset", "halfcheetah", "--no-pick")
+    assert not pick("--preset", "hopper") and pick("--preset", "hopper", "--pick") and not pick()
+    # `train` has no pick (it is one member); the preset's key changes nothing there
+    args = cli.build_parser().parse_args(["train", "--pool-dir", str(tmp_path), "--preset", "halfcheetah"])
+    cli._apply_preset(args)
+    assert PoolConfig.merged(cli._explicit(args, PoolConfig), None).env == "HalfCheetah-v5"

@@ -149,8 +149,8 @@ def cmd_launch(args) -> int:
         lrs = learning_rates(preset, args.pool_size)  # a larger pool keeps the preset's rates
     requested = _explicit(args, PoolConfig)
     member_opts = _explicit(args, MemberConfig, skip=("member", "learning_rate"))
-    return launch.launch(args.pool_dir, requested, member_opts, lrs,
-                         args.learning_rate, quiet=args.quiet, interval=args.interval)
+    return launch.launch(args.pool_dir, requested, member_opts, lrs, args.learning_rate, quiet=args.quiet,
+                         interval=args.interval, minutes=args.minutes, pick=bool(args.pick))
 
 
 def cmd_status(args) -> int:
@@ -258,6 +258,12 @@ def build_parser() -> argparse.ArgumentParser:
                          "on a terminal the view is redrawn in place)")
     la.add_argument("--preset", default=None, choices=_preset_names(),
                     help="named settings for a task, learning rates included (docs/usage.md: Presets)")
+    la.add_argument("--minutes", type=_positive, default=None, metavar="M",
+                    help="stop the members after M minutes of wall-clock time (a pick included), as Ctrl-C "
+                         "does; a later launch resumes the pool")
+    la.add_argument("--pick", action=argparse.BooleanOptionalAction, default=None,
+                    help="end the run with rl-pool pick (its defaults; POOL/picked.npz), within --minutes "
+                         "(default: no, or the preset's choice)")
     _add_dataclass_options(la, PoolConfig)
     _add_dataclass_options(la, MemberConfig, skip=("member",))
     la.set_defaults(func=cmd_launch)

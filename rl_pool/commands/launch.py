@@ -6,12 +6,19 @@ copy in a locked state. Children get the one-thread caps in their environment
 and their own session, so the launcher alone decides when they get a signal.
 Progress (:mod:`rl_pool.commands.progress`) is a live panel on a terminal and plain
 lines in a log.
+
+``minutes`` is a wall-clock budget for the launch: when it runs out the members are stopped as
+Ctrl-C stops them (their deposits stay; a later launch resumes). ``pick`` ends the run with
+``rl-pool pick`` (:mod:`rl_pool.commands.pick`) on the pool's agents, into ``POOL/picked.npz``;
+with a budget as well, the members stop early enough for the pick to fit in it, by an estimate
+from the pool's own pace (env steps per second) of what the pick's episodes cost.
 """
 
 from __future__ import annotations
 
 import contextlib
 import json
+import math
 import os
 import signal
 import subprocess
@@ -21,7 +28,7 @@ import time
 from rl_pool import fsutil
 from rl_pool.commands import progress, status
 from rl_pool.config import MemberConfig
-from rl_pool.errors import SignalLatch, UsageError, drop_output
+from rl_pool.errors import AgentFileError, SignalLatch, UsageError, drop_output
 from rl_pool.protocol import heartbeat, layout, pool
 from rl_pool.threads import capped_environ
 
@@ -74,10 +81,13 @@ def _args(opts: dict) -> list[str]:
 
 
 def launch(pool_dir: str, requested: dict, member_opts: dict, learning_rates: list[float] | None,
-           base_lr: float | None, quiet: bool = False, interval: float = 10.0) -> int:
+           base_lr: float | None, quiet: bool = False, interval: float = 10.0, minutes: float | None = None,
+           pick: bool = False) -> int:
     """Start the members, show progress until they exit; 0, 1 if a member failed, 130 if stopped.
 
     ``interval``: seconds between plain progress lines when stdout is not a terminal.
+    ``minutes``: stop the members after this much wall-clock time (exit 0); ``pick``: then, or
+    when they are done, pick the pool's agent on held-out episodes (within ``minutes``).
     """
     from rl_pool.commands.member import check_arguments, make_initial
 
@@ -97,6 +107,7 @@ def launch(pool_dir: str, requested: dict, member_opts: dict, learning_rates: li
 
     procs = []
     started = time.time()
+    budget = Budget(started, minutes, pick_cost(paths, n) if pick else None)
     target = member_opts.get("iterations", MemberConfig.iterations)
     env = capped_environ()
     interrupted = False
@@ -114,7 +125,7 @@ def launch(pool_dir: str, requested: dict, member_opts: dict, learning_rates: li
         _say(f"launched {n} members on {cfg.env} in {paths.root}; learning rates "
              + ", ".join(f"m{m}={lr:g}" for m, lr in enumerate(lrs))
              + (" (as the pool ran; give --learning-rates for others)" if ran is not None else ""))
-        codes = _watch(paths, procs, quiet, interval, started, target)
+        codes = _watch(paths, procs, quiet, interval, started, target, budget)
     except KeyboardInterrupt:
         interrupted = True
         _say("\nstopping members (deposits on disk are safe; run again to resume)...", sys.stderr)
@@ -123,14 +134,84 @@ def launch(pool_dir: str, requested: dict, member_opts: dict, learning_rates: li
         _interrupt.restore(old)
     st = status.status(paths.root)
     b = st["best"]
-    _say(f"iterations completed {st['iterations_completed']} in {progress.clock(time.time() - started)}; best "
+    _say(f"iterations completed {st['iterations_completed']} in {progress.clock(time.time() - started)}"
+         + (f" (stopped at the budget of {minutes:g} minutes)" if budget.stopped else "") + "; best "
          + ("none" if b is None else f"{b['eval_return']:.2f} (iteration {b['iteration']}, {status.describe(b)})"))
     if interrupted:
         return 130
+    if budget.stopped:
+        codes = [0] * len(codes)  # the members stopped because they were told to, not on their own
     failed = [(m, c) for m, c in enumerate(codes) if c != 0]
     for m, c in failed:
         _say(f"member {m} failed (exit {c}): {_why(paths, m)}", sys.stderr)
-    return 1 if failed else 0
+    if failed:
+        return 1
+    return _pick(paths, n) if pick else 0
+
+
+def _pick(paths: layout.Paths, n: int) -> int:
+    """The run's last step: ``rl-pool pick`` with its defaults, on as many workers as members (or cores)."""
+    from rl_pool.commands import pick as picking
+
+    workers = max(1, min(n, os.cpu_count() or 1))
+    old = _interrupt.install((signal.SIGINT, signal.SIGTERM, signal.SIGHUP))
+    try:
+        res = picking.pick(paths.root, workers=workers)
+    except KeyboardInterrupt:
+        _say("pick stopped; the pool is intact (rl-pool pick POOL picks its agent)", sys.stderr)
+        return 130
+    except UsageError as exc:
+        _say(f"no pick: {exc}", sys.stderr)
+        return 1
+    finally:
+        _interrupt.restore(old)
+    p = res["picked"]
+    _say(f"picked the agent of iteration {p['iteration']} on {p['episodes']} held-out episodes: mean "
+         f"{p['mean_return']:.2f} ± {p['std_return']:.2f} ({len(res['candidates'])} candidates, "
+         f"{res['seconds']:.0f} s), written to {res['out']}")
+    return 0
+
+
+#: Seconds a pick needs beyond its episodes (spawning its workers, loading the agents).
+PICK_OVERHEAD = 10.0
+#: Margin on the estimate of a pick's episodes: a pick must not run past the budget.
+PICK_MARGIN = 1.5
+
+
+def pick_cost(paths: layout.Paths, pool_size: int) -> float:
+    """The env steps a pick with ``rl-pool pick``'s defaults runs at most: every candidate (the top
+    ones and the last selected) on every held-out episode, each as long as the pool's episodes."""
+    from rl_pool.commands import pick as picking
+    from rl_pool.protocol import deposits
+
+    try:
+        steps = deposits.load_selected_agent(paths, 0).meta.max_episode_steps
+    except (OSError, ValueError, AgentFileError):
+        steps = 1000
+    return float((picking.DEFAULT_TOP + 1) * picking.DEFAULT_EPISODES * max(1, steps))
+
+
+class Budget:
+    """When a launch with ``minutes`` stops its members: at the end of the budget, or, with a
+    pick to come (``pick_steps`` env steps), early enough for it by the pool's pace."""
+
+    def __init__(self, started: float, minutes: float | None, pick_steps: float | None):
+        self.end = None if minutes is None else started + 60.0 * minutes
+        self.pick_steps = pick_steps
+        self.stopped = False
+
+    def reserve(self, steps_per_second: float | None) -> float:
+        """Seconds kept for the pick; before the pool has a pace, as if it ran 5,000 steps a second."""
+        if not self.pick_steps:
+            return 0.0
+        rate = steps_per_second if steps_per_second and math.isfinite(steps_per_second) else 5000.0
+        return PICK_OVERHEAD + PICK_MARGIN * self.pick_steps / max(rate, 1.0)
+
+    def due(self, steps_per_second: float | None, now: float | None = None) -> bool:
+        if self.end is None:
+            return False
+        now = time.time() if now is None else now
+        return now >= self.end - self.reserve(steps_per_second)
 
 
 #: Only the first signal stops the pool: a second Ctrl-C, or the same signal sent to the whole
@@ -152,22 +233,30 @@ def _say(line: str, stream=None) -> None:
         pass
 
 
-def _watch(paths, procs, quiet, interval, started, target) -> list[int]:
-    """Wait for the members while showing progress; stop the others if one fails."""
+def _watch(paths, procs, quiet, interval, started, target, budget: Budget) -> list[int]:
+    """Wait for the members while showing progress; stop the others if one fails, and all of them
+    when the budget is spent."""
     tracker = progress.Tracker(paths.root, since=started, target=target)
     display = contextlib.nullcontext() if quiet else progress.Display(sys.stdout, interval=interval)
     next_poll = 0.0
+    pace = None
     with display:
         while True:
             codes = [p.poll() for p in procs]
             done = all(c is not None for c in codes)
             failed = any(c not in (None, 0) for c in codes) and not done
             now = time.monotonic()
-            if not quiet and (now >= next_poll or done or failed):
-                display.update(tracker.poll())
+            if (not quiet or budget.end is not None) and (now >= next_poll or done or failed):
+                snap = tracker.poll()
+                pace = snap.steps_per_second or pace
+                if not quiet:
+                    display.update(snap)
                 next_poll = now + 0.5
             if failed or done:
                 break
+            if budget.due(pace):
+                budget.stopped = True
+                return _stop_all(procs, signal.SIGTERM)
             _interrupt.check()
             time.sleep(0.1)
     if failed:

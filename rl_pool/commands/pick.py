@@ -40,6 +40,9 @@ from rl_pool.errors import AgentFileError, UsageError
 from rl_pool.protocol import deposits, layout, pool
 
 DEFAULT_SEED = 2_000_000
+#: Candidates (besides the last selected agent) and held-out episodes of a pick by default.
+DEFAULT_TOP = 20
+DEFAULT_EPISODES = 20
 
 
 def candidates(paths: layout.Paths, top: int) -> tuple[list[dict], int]:
@@ -117,7 +120,7 @@ def _why_not_playable(data: bytes, digest: str, source: str, cfg, like=None) -> 
     return None
 
 
-def pick(pool_dir: str, top: int = 20, episodes: int = 20, seed: int = DEFAULT_SEED, workers: int = 1,
+def pick(pool_dir: str, top: int = DEFAULT_TOP, episodes: int = DEFAULT_EPISODES, seed: int = DEFAULT_SEED, workers: int = 1,
          mode: str = "mean", out: str | None = None, finalists: int = 0, final_episodes: int = 100) -> dict:
     """Run the candidates on ``episodes`` held-out episodes; with ``finalists`` K, the K best of them
     on ``final_episodes`` more, and pick the finalist with the highest mean over all its episodes."""

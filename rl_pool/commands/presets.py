@@ -7,7 +7,7 @@ one rate per member (``launch``; ``train --member I`` takes the I-th) and
 ``--merge`` rule (:func:`merge`), and when that rule merges with the rule of three
 ``merged_batch_episodes`` replaces ``batch_episodes`` (:func:`batch_episodes`) and the other
 ``merged_<option>`` keys set ``<option>`` (:func:`merged_options`), in place of the preset's
-own ``<option>`` where it has one.
+own ``<option>`` where it has one. ``pick`` makes ``launch`` end with a pick (``--pick``).
 """
 
 from __future__ import annotations
@@ -21,7 +21,8 @@ PRESETS: dict[str, dict] = {
     "swimmer": {"env": "Swimmer-v5", "learning_rates": [0.01, 0.1]},
     "halfcheetah": {"env": "HalfCheetah-v5", "policy": "mlp", "hidden": "64,64", "init_shape": 20.0,
                     "learning_rates": [0.001, 0.003], "merged_batch_episodes": 5, "merged_merge": "momentum",
-                    "merged_parent_patience": 3, "merged_revert_after": 20},
+                    "merged_parent_patience": 3, "merged_revert_after": 20, "merged_revert_sharpen": 3.0,
+                    "pick": True},
     "hopper": {"env": "Hopper-v5", "reward_shift": 1.0, "selection": "branches", "revert_after": 20,
                "revert_sharpen": 3.0, "eval_episodes": 10, "train_episodes": 40, "batch_episodes": 20,
                "learning_rates": [0.01, 0.03]},
@@ -110,7 +111,8 @@ def needless(preset: dict, value) -> set[str]:
     """The preset's options that the pool's other settings (``value(name)``: the final value of an
     option) leave nothing to do, and that the pool's checks would refuse for it: sharpening at
     reverts (``revert_sharpen``) without reverts or without the ``exp`` link."""
-    if "revert_sharpen" in preset and (not value("revert_after") or value("link") != "exp"):
+    sharpens = "revert_sharpen" in preset or "merged_revert_sharpen" in preset
+    if sharpens and (not value("revert_after") or value("link") != "exp"):
         return {"revert_sharpen"}
     return set()
 
