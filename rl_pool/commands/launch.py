@@ -107,7 +107,7 @@ def launch(pool_dir: str, requested: dict, member_opts: dict, learning_rates: li
 
     procs = []
     started = time.time()
-    budget = Budget(started, minutes, pick_cost(paths, n) if pick else None)
+    budget = Budget(started, minutes, pick_cost(paths) if pick else None)
     target = member_opts.get("iterations", MemberConfig.iterations)
     env = capped_environ()
     interrupted = False
@@ -178,7 +178,7 @@ PICK_OVERHEAD = 10.0
 PICK_MARGIN = 1.5
 
 
-def pick_cost(paths: layout.Paths, pool_size: int) -> float:
+def pick_cost(paths: layout.Paths) -> float:
     """The env steps a pick with ``rl-pool pick``'s defaults runs at most: every candidate (the top
     ones and the last selected) on every held-out episode, each as long as the pool's episodes."""
     from rl_pool.commands import pick as picking
