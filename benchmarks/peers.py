@@ -383,39 +383,26 @@ def run_ars(a, workdir: str) -> dict:
 # rl-pool: ``rl-pool launch``; this process reads best.npz while it runs.
 
 
-def _read_best(pool_dir: str) -> tuple[bytes, dict] | None:
-    """best.npz's bytes and best.json when the two agree (a reader can land between the writes)."""
+def _read_agent(pool_dir: str, stem: str) -> tuple[bytes, dict, float] | None:
+    """``STEM.npz``'s bytes, ``STEM.json`` (for ``picked``, its ``picked`` record) and when the JSON
+    was written, when the two agree (a reader can land between the writes)."""
     try:
-        with open(os.path.join(pool_dir, "best.npz"), "rb") as fh:
+        with open(os.path.join(pool_dir, stem + ".npz"), "rb") as fh:
             data = fh.read()
-        with open(os.path.join(pool_dir, "best.json")) as fh:
+        with open(os.path.join(pool_dir, stem + ".json")) as fh:
+            written = os.fstat(fh.fileno()).st_mtime
             doc = json.load(fh)
     except (OSError, ValueError):
         return None
+    if stem == "picked" and isinstance(doc, dict):
+        doc = doc.get("picked")
     if not isinstance(doc, dict) or doc.get("agent_sha256") != hashlib.sha256(data).hexdigest():
         return None
-    return data, doc
+    return data, doc, written
 
 
 #: Seconds past the budget that a launch gets to stop on its own before it is sent SIGINT.
 LAUNCH_GRACE = 60.0
-
-
-def _read_pick(pool_dir: str, since: float) -> tuple[bytes, dict] | None:
-    """The launch's pick (picked.npz and picked.json, made after ``since``) when the two agree."""
-    try:
-        if os.stat(os.path.join(pool_dir, "picked.json")).st_mtime < since:
-            return None
-        with open(os.path.join(pool_dir, "picked.npz"), "rb") as fh:
-            data = fh.read()
-        with open(os.path.join(pool_dir, "picked.json")) as fh:
-            doc = json.load(fh)
-    except (OSError, ValueError):
-        return None
-    picked = doc.get("picked") if isinstance(doc, dict) else None
-    if not isinstance(picked, dict) or picked.get("agent_sha256") != hashlib.sha256(data).hexdigest():
-        return None
-    return data, picked
 
 
 def run_rlpool(a, workdir: str) -> dict:
@@ -430,7 +417,7 @@ def run_rlpool(a, workdir: str) -> dict:
            "--pool-size", str(a.members), "--seed", str(a.seed), "--iterations", "100000000",
            "--minutes", repr(a.minutes), "--quiet", *a.options]
     log = os.path.join(d, "launch.log")
-    checkpoints, latest, seen = [], None, None
+    checkpoints, latest, seen, overran = [], None, None, False
     t0 = time.time()
     with open(log, "w") as fh:
         proc = subprocess.Popen(cmd, stdout=fh, stderr=subprocess.STDOUT, start_new_session=True)
@@ -438,13 +425,16 @@ def run_rlpool(a, workdir: str) -> dict:
             while True:
                 now = time.time() - t0
                 exited = proc.poll() is not None
-                # the launch stops itself at the budget (a pick within it): its last agent is the whole budget's
-                while marks and (now > marks[0][1] if marks[0][0] < 1.0 else exited and now > seconds / 2):
+                # The launch stops itself at the budget (a pick within it): when it has ended well, its
+                # last agent is the whole budget's. One that ended badly before the budget is an error.
+                while marks and (now > marks[0][1] if marks[0][0] < 1.0
+                                 else exited and (proc.returncode == 0 or now > seconds)):
                     fraction, mark = marks.pop(0)
                     name = f"ck-{round(fraction * 100)}.npz"
-                    picked = _read_pick(pool_dir, t0) if fraction == 1.0 and exited else None
-                    if picked is not None:
-                        latest = {"data": picked[0], "doc": picked[1] | {"picked": True}, "seconds": now}
+                    picked = _read_agent(pool_dir, "picked") if fraction == 1.0 else None
+                    if picked is not None and picked[2] >= t0:  # this launch's pick, not an old one
+                        latest = {"data": picked[0], "doc": picked[1] | {"picked": True},
+                                  "seconds": picked[2] - t0}
                     if latest is not None:
                         with open(os.path.join(d, name), "wb") as out:
                             out.write(latest["data"])
@@ -461,6 +451,7 @@ def run_rlpool(a, workdir: str) -> dict:
                 if not marks or exited:
                     break
                 if now > seconds + LAUNCH_GRACE:
+                    overran = True
                     _stop(proc)  # it was told the budget; this is the fallback
                     continue
                 try:
@@ -468,8 +459,8 @@ def run_rlpool(a, workdir: str) -> dict:
                     key = (st.st_mtime_ns, st.st_size, st.st_ino)
                 except OSError:
                     key = None
-                if key is not None and key != seen:
-                    got = _read_best(pool_dir)
+                if key is not None and key != seen and now <= seconds:  # none made after the budget counts
+                    got = _read_agent(pool_dir, "best")
                     if got is not None:
                         latest, seen = {"data": got[0], "doc": got[1], "seconds": now}, key
                 time.sleep(max(0.01, min(a.poll, marks[0][1] - (time.time() - t0) + 0.001)) if marks[0][0] < 1.0
@@ -480,8 +471,13 @@ def run_rlpool(a, workdir: str) -> dict:
            "seconds": time.time() - t0, "cores": a.cores, "seed": a.seed}
     if marks:
         run["error"] = f"rl-pool launch exited ({proc.returncode}) before the budget: {_tail(log)}"
-    elif proc.returncode not in (0, -signal.SIGINT, 130):
+    elif proc.returncode != 0 and not overran:
         run["error"] = f"rl-pool launch failed ({proc.returncode}): {_tail(log)}"
+    last = checkpoints[-1] if checkpoints else {}
+    if overran or (last.get("agent_seconds") or 0) > seconds:
+        run["overran"] = True  # the launch, or its pick, ran past the budget (the table says when)
+        print(f"rl-pool: the launch ran past the budget ({'stopped by SIGINT' if overran else 'its pick'})",
+              file=sys.stderr, flush=True)
     # env steps by each mark: the pool's history, on this host's clock
     try:
         from rl_pool.commands import status

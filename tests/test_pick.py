@@ -10,6 +10,8 @@ import numpy as np
 import pytest
 
 from rl_pool import Agent
+from rl_pool.commands import pick
+from rl_pool.protocol import layout
 
 from .conftest import SHORT, rl_pool
 from .helpers import reference_episode
@@ -210,18 +212,20 @@ def test_a_launch_ends_with_a_pick_of_the_pool_it_ran(tmp_path):
     shas = {s["agent_sha256"] for s in (json.loads((d / "iterations" / f"{i:06d}" / "selected.json").read_bytes())
                                         for i in range(4))}
     assert res["picked"]["agent_sha256"] == _sha(d / "picked.npz") and res["picked"]["agent_sha256"] in shas
-    assert {c["agent_sha256"] for c in res["candidates"]} == shas  # fewer than pick's default top 20: all
-    assert (res["episodes"], res["seed"], res["top"]) == (20, 2_000_000, 20)
+    assert {c["agent_sha256"] for c in res["candidates"]} == shas  # fewer than pick's default top: all
+    assert (res["episodes"], res["seed"], res["top"]) == (pick.DEFAULT_EPISODES, pick.DEFAULT_SEED, pick.DEFAULT_TOP)
     p = res["picked"]
-    assert f"picked the agent of iteration {p['iteration']} on 20 held-out episodes: mean {p['mean_return']:.2f}" \
-        in proc.stdout
+    assert f"picked the agent of iteration {p['iteration']} on {p['episodes']} held-out episodes: mean " \
+           f"{p['mean_return']:.2f}" in proc.stdout
     again = json.loads(rl_pool("pick", d, "--out", tmp_path / "again.npz", "--json", check=0).stdout)
     assert again["picked"]["agent_sha256"] == p["agent_sha256"]  # what `rl-pool pick POOL` picks
+    # what a launch with a budget keeps for one candidate: its held-out episodes at the pool's length
+    assert pick.episode_steps(layout.Paths(str(d))) == pick.DEFAULT_EPISODES * 60
 
 
 def test_a_launch_with_a_budget_stops_in_time_for_its_pick_and_a_launch_resumes(tmp_path):
     d = tmp_path / "budget"
-    budget = 0.6  # minutes: the pick of 21 x 20 short episodes keeps about 20 s of it
+    budget = 0.6  # minutes: the pick of 21 x 20 short episodes keeps 10-20 s of it
     t0 = time.monotonic()
     proc = rl_pool("launch", "--pool-dir", d, "--pool-size", 2, "--iterations", 100000, *SHORT,
                    "--minutes", budget, "--pick", "--quiet", check=0)
@@ -231,25 +235,29 @@ def test_a_launch_with_a_budget_stops_in_time_for_its_pick_and_a_launch_resumes(
     assert took < 60 * budget + 15, (took, proc.stdout)
     st = json.loads(rl_pool("status", d, "--json", check=0).stdout)
     done = st["iterations_completed"]
-    assert 1 <= done < 100000
-    assert all(m["state"] != "training" for m in st["members"])
+    assert all(m["state"] != "training" for m in st["members"]) and done < 100000
+    # the members trained for most of what the pick left them, not only at the start
+    ran = st["history"][-1]["elapsed_seconds"]
+    assert ran > 60 * budget / 4, (ran, proc.stdout)
     assert json.loads((d / "picked.json").read_bytes())["picked"]["agent_sha256"] == _sha(d / "picked.npz")
     # stopped as Ctrl-C stops it: the next launch resumes the pool, not a new one
     rl_pool("launch", "--pool-dir", d, "--iterations", done + 1, "--quiet", check=0)
     assert json.loads(rl_pool("status", d, "--json", check=0).stdout)["iterations_completed"] == done + 1
 
 
-def test_the_budget_keeps_time_for_the_pick_by_the_pools_pace():
-    from rl_pool.commands.launch import PICK_MARGIN, PICK_OVERHEAD, Budget
+def test_the_budget_keeps_time_for_the_pick_by_the_pools_pace_and_its_candidates():
+    from rl_pool.commands.launch import PICK_MARGIN, PICK_OVERHEAD, SLOW_PACE, Budget
 
-    plain = Budget(100.0, 1.0, None)
-    assert not plain.due(5e4, now=159.9) and plain.due(5e4, now=160.0)
-    never = Budget(100.0, None, 1e6)
-    assert not never.due(1.0, now=1e9)
-    with_pick = Budget(100.0, 1.0, 420_000)  # HalfCheetah: 21 candidates x 20 episodes x 1000 steps
-    keep = PICK_OVERHEAD + PICK_MARGIN * 420_000 / 50_000
-    assert with_pick.reserve(50_000) == pytest.approx(keep)
-    assert not with_pick.due(50_000, now=160.0 - keep - 0.01) and with_pick.due(50_000, now=160.0 - keep)
-    # before the pool has a pace, a slow one is assumed: the pick is not squeezed out
-    assert with_pick.reserve(None) == pytest.approx(PICK_OVERHEAD + PICK_MARGIN * 420_000 / 5000)
-    assert with_pick.due(None, now=100.0)  # more than the whole minute
+    plain = Budget(1.0, None, now=100.0)
+    assert not plain.due(5e4, 50, now=159.9) and plain.due(5e4, 50, now=160.0)
+    assert not Budget(None, 20_000, now=100.0).due(1.0, 0, now=1e9)
+    hc = 20 * 1000  # HalfCheetah: 20 held-out episodes of 1000 steps a candidate
+    with_pick = Budget(1.0, hc, now=100.0)
+    # 21 candidates at most: the top 20 and the last selected
+    keep = PICK_OVERHEAD + PICK_MARGIN * 21 * hc / 50_000
+    assert with_pick.reserve(50_000, 300) == with_pick.reserve(50_000, 20) == pytest.approx(keep)
+    assert not with_pick.due(50_000, 300, now=160.0 - keep - 0.01) and with_pick.due(50_000, 300, now=160.0 - keep)
+    # a young pool has fewer agents to pick from (one new one an iteration at most, and the first)
+    assert with_pick.reserve(50_000, 3) == pytest.approx(PICK_OVERHEAD + PICK_MARGIN * 4 * hc / 50_000)
+    # before the pool has a pace, a slow one is assumed
+    assert with_pick.reserve(None, 0) == pytest.approx(PICK_OVERHEAD + PICK_MARGIN * hc / SLOW_PACE)

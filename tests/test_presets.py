@@ -125,12 +125,12 @@ def test_halfcheetah_pools_that_merge_end_long_parent_runs(extra, patience, reve
 
 def test_merged_options_only_in_pools_that_merge_from_three():
     preset = presets.PRESETS["halfcheetah"]
-    want = {"parent_patience": 3, "revert_after": 20}
+    want = {"parent_patience": 3, "revert_after": 20, "revert_sharpen": 3.0}
     assert presets.merged_options(preset, 8, "momentum", "parent") == want
     assert presets.merged_options(preset, 8, "adaptive", "parent") == want
     assert presets.merged_options(preset, 2, "momentum", "parent") == {}
     assert presets.merged_options(preset, 8, "none", "parent") == {}
-    assert presets.merged_options(preset, 8, "momentum", "branches") == {"revert_after": 20}
+    assert presets.merged_options(preset, 8, "momentum", "branches") == {"revert_after": 20, "revert_sharpen": 3.0}
     for name, other in presets.PRESETS.items():
         if not any(key.startswith("merged_") for key in other):
             assert presets.merged_options(other, 8, "adaptive", "parent") == {}, name
@@ -179,7 +179,7 @@ def test_a_preset_that_ends_with_a_pick_and_the_option_that_wins(tmp_path):
     assert pick("--preset", "halfcheetah") and pick("--preset", "halfcheetah", "--pool-size", "8")
     assert not pick("--preset", "halfcheetah", "--no-pick")
     assert not pick("--preset", "hopper") and pick("--preset", "hopper", "--pick") and not pick()
-    # `train` has no pick (it is one member); the preset's key changes nothing there
+    # `train` runs one member and has no pick: the preset leaves the launch's key out there
     args = cli.build_parser().parse_args(["train", "--pool-dir", str(tmp_path), "--preset", "halfcheetah"])
     cli._apply_preset(args)
-    assert PoolConfig.merged(cli._explicit(args, PoolConfig), None).env == "HalfCheetah-v5"
+    assert not hasattr(args, "pick") and args.env == "HalfCheetah-v5"

@@ -74,6 +74,8 @@ def _apply_preset(args) -> dict:
     for key, value in chosen.items():
         if key in ("learning_rates", "batch_episodes") or key.startswith("merged_") or key in merged:
             continue
+        if key in presets.LAUNCH_ONLY and not hasattr(args, key):
+            continue  # `train` runs one member: what a launch does after its members is not its own
         if getattr(args, key, None) is None:
             setattr(args, key, value)
     if own_batch and getattr(args, "batch_episodes", None) is None:
@@ -378,7 +380,7 @@ def _positive(text: str) -> float:
     except ValueError:
         raise argparse.ArgumentTypeError(f"not a number: {text!r}") from None
     if not value > 0 or value == float("inf"):
-        raise argparse.ArgumentTypeError("must be a positive number of seconds")
+        raise argparse.ArgumentTypeError("must be a positive number")
     return value
 
 

@@ -28,7 +28,7 @@ import time
 from rl_pool import fsutil
 from rl_pool.commands import progress, status
 from rl_pool.config import MemberConfig
-from rl_pool.errors import AgentFileError, SignalLatch, UsageError, drop_output
+from rl_pool.errors import SignalLatch, UsageError, drop_output
 from rl_pool.protocol import heartbeat, layout, pool
 from rl_pool.threads import capped_environ
 
@@ -83,12 +83,14 @@ def _args(opts: dict) -> list[str]:
 def launch(pool_dir: str, requested: dict, member_opts: dict, learning_rates: list[float] | None,
            base_lr: float | None, quiet: bool = False, interval: float = 10.0, minutes: float | None = None,
            pick: bool = False) -> int:
-    """Start the members, show progress until they exit; 0, 1 if a member failed, 130 if stopped.
+    """Start the members, show progress until they exit; 0, 1 if a member failed (or the pick found
+    no agent), 130 if stopped (Ctrl-C, a signal; also during the pick).
 
     ``interval``: seconds between plain progress lines when stdout is not a terminal.
-    ``minutes``: stop the members after this much wall-clock time (exit 0); ``pick``: then, or
-    when they are done, pick the pool's agent on held-out episodes (within ``minutes``).
+    ``minutes``: stop the members after this much wall-clock time (not a failure); ``pick``: then,
+    or when they are done, pick the pool's agent on held-out episodes (within ``minutes``).
     """
+    from rl_pool.commands import pick as picking
     from rl_pool.commands.member import check_arguments, make_initial
 
     paths = layout.Paths(pool_dir)
@@ -107,64 +109,70 @@ def launch(pool_dir: str, requested: dict, member_opts: dict, learning_rates: li
 
     procs = []
     started = time.time()
-    budget = Budget(started, minutes, pick_cost(paths) if pick else None)
+    budget = Budget(minutes, picking.episode_steps(paths) if pick else None)
     target = member_opts.get("iterations", MemberConfig.iterations)
     env = capped_environ()
     interrupted = False
     # Members run in their own sessions, so the launcher must pass on every way it can be told
-    # to stop (Ctrl-C, kill, a closed terminal): otherwise they would train on unattended.
+    # to stop (Ctrl-C, kill, a closed terminal): otherwise they would train on unattended. The
+    # latch stays until the pick is done, so a stop during the summary or the pick is one too.
     old = _interrupt.install((signal.SIGINT, signal.SIGTERM, signal.SIGHUP))
     try:
-        for m, lr in enumerate(lrs):
-            cmd = [sys.executable, "-m", "rl_pool", "train", "--pool-dir", paths.root, "--member", str(m),
-                   "--learning-rate", repr(lr), "--quiet", *_args(requested | {"pool_size": n}),
-                   *_args(member_opts)]
-            with fsutil.open_append(os.path.join(paths.logs, layout.member_name(m) + ".out"), root=paths.root) as out:
-                procs.append(subprocess.Popen(cmd, stdout=out, stderr=subprocess.STDOUT,
-                                              stdin=subprocess.DEVNULL, env=env, start_new_session=True))
-        _say(f"launched {n} members on {cfg.env} in {paths.root}; learning rates "
-             + ", ".join(f"m{m}={lr:g}" for m, lr in enumerate(lrs))
-             + (" (as the pool ran; give --learning-rates for others)" if ran is not None else ""))
-        codes = _watch(paths, procs, quiet, interval, started, target, budget)
+        try:
+            for m, lr in enumerate(lrs):
+                cmd = [sys.executable, "-m", "rl_pool", "train", "--pool-dir", paths.root, "--member", str(m),
+                       "--learning-rate", repr(lr), "--quiet", *_args(requested | {"pool_size": n}),
+                       *_args(member_opts)]
+                with fsutil.open_append(os.path.join(paths.logs, layout.member_name(m) + ".out"),
+                                        root=paths.root) as out:
+                    procs.append(subprocess.Popen(cmd, stdout=out, stderr=subprocess.STDOUT,
+                                                  stdin=subprocess.DEVNULL, env=env, start_new_session=True))
+            _say(f"launched {n} members on {cfg.env} in {paths.root}; learning rates "
+                 + ", ".join(f"m{m}={lr:g}" for m, lr in enumerate(lrs))
+                 + (" (as the pool ran; give --learning-rates for others)" if ran is not None else ""))
+            codes = _watch(paths, procs, quiet, interval, started, target, budget)
+        except KeyboardInterrupt:
+            interrupted = True
+            _say("\nstopping members (deposits on disk are safe; run again to resume)...", sys.stderr)
+            codes = _stop_all(procs, signal.SIGTERM)
+        st = status.status(paths.root)
+        b = st["best"]
+        _say(f"iterations completed {st['iterations_completed']} in {progress.clock(time.time() - started)}"
+             + (f" (stopped at the budget of {minutes:g} minutes)" if budget.stopped else "") + "; best "
+             + ("none" if b is None else f"{b['eval_return']:.2f} (iteration {b['iteration']}, {status.describe(b)})"))
+        if interrupted:
+            return 130
+        failed = [(m, c) for m, c in enumerate(codes) if c != 0 and not (budget.stopped and c in STOPPED)]
+        for m, c in failed:
+            _say(f"member {m} failed (exit {c}): {_why(paths, m)}", sys.stderr)
+        if failed:
+            return 1
+        if not pick:
+            return 0
+        _interrupt.check()  # a stop that a finaliser swallowed while the members were stopping
+        return _pick(paths, n)
     except KeyboardInterrupt:
-        interrupted = True
-        _say("\nstopping members (deposits on disk are safe; run again to resume)...", sys.stderr)
-        codes = _stop_all(procs, signal.SIGTERM)
+        _say("stopped; the pool is intact" + (" (rl-pool pick POOL picks its agent)" if pick else ""), sys.stderr)
+        return 130
     finally:
         _interrupt.restore(old)
-    st = status.status(paths.root)
-    b = st["best"]
-    _say(f"iterations completed {st['iterations_completed']} in {progress.clock(time.time() - started)}"
-         + (f" (stopped at the budget of {minutes:g} minutes)" if budget.stopped else "") + "; best "
-         + ("none" if b is None else f"{b['eval_return']:.2f} (iteration {b['iteration']}, {status.describe(b)})"))
-    if interrupted:
-        return 130
-    if budget.stopped:
-        codes = [0] * len(codes)  # the members stopped because they were told to, not on their own
-    failed = [(m, c) for m, c in enumerate(codes) if c != 0]
-    for m, c in failed:
-        _say(f"member {m} failed (exit {c}): {_why(paths, m)}", sys.stderr)
-    if failed:
-        return 1
-    return _pick(paths, n) if pick else 0
+
+
+#: Exit codes of a member that the launcher stopped at the budget: its own clean stop on SIGTERM
+#: (128 + 15), the signal itself (before the member's handler was in place), or the KILL after
+#: the grace (its files are whole either way).
+STOPPED = (128 + signal.SIGTERM, -signal.SIGTERM, -signal.SIGKILL)
 
 
 def _pick(paths: layout.Paths, n: int) -> int:
     """The run's last step: ``rl-pool pick`` with its defaults, on as many workers as members (or cores)."""
     from rl_pool.commands import pick as picking
 
-    workers = max(1, min(n, os.cpu_count() or 1))
-    old = _interrupt.install((signal.SIGINT, signal.SIGTERM, signal.SIGHUP))
     try:
-        res = picking.pick(paths.root, workers=workers)
-    except KeyboardInterrupt:
-        _say("pick stopped; the pool is intact (rl-pool pick POOL picks its agent)", sys.stderr)
-        return 130
+        res = picking.pick(paths.root, workers=max(1, min(n, os.cpu_count() or 1)))
     except UsageError as exc:
         _say(f"no pick: {exc}", sys.stderr)
         return 1
-    finally:
-        _interrupt.restore(old)
     p = res["picked"]
     _say(f"picked the agent of iteration {p['iteration']} on {p['episodes']} held-out episodes: mean "
          f"{p['mean_return']:.2f} ± {p['std_return']:.2f} ({len(res['candidates'])} candidates, "
@@ -176,42 +184,37 @@ def _pick(paths: layout.Paths, n: int) -> int:
 PICK_OVERHEAD = 10.0
 #: Margin on the estimate of a pick's episodes: a pick must not run past the budget.
 PICK_MARGIN = 1.5
-
-
-def pick_cost(paths: layout.Paths) -> float:
-    """The env steps a pick with ``rl-pool pick``'s defaults runs at most: every candidate (the top
-    ones and the last selected) on every held-out episode, each as long as the pool's episodes."""
-    from rl_pool.commands import pick as picking
-    from rl_pool.protocol import deposits
-
-    try:
-        steps = deposits.load_selected_agent(paths, 0).meta.max_episode_steps
-    except (OSError, ValueError, AgentFileError):
-        steps = 1000
-    return float((picking.DEFAULT_TOP + 1) * picking.DEFAULT_EPISODES * max(1, steps))
+#: The pace assumed before the pool has one (env steps per second): a slow pool's.
+SLOW_PACE = 5000.0
 
 
 class Budget:
     """When a launch with ``minutes`` stops its members: at the end of the budget, or, with a
-    pick to come (``pick_steps`` env steps), early enough for it by the pool's pace."""
+    pick to come, early enough for it by the pool's pace. ``pick_steps``: the env steps of one
+    candidate's held-out episodes at most (:func:`rl_pool.commands.pick.episode_steps`)."""
 
-    def __init__(self, started: float, minutes: float | None, pick_steps: float | None):
-        self.end = None if minutes is None else started + 60.0 * minutes
+    def __init__(self, minutes: float | None, pick_steps: float | None = None, now: float | None = None):
+        start = time.monotonic() if now is None else now
+        self.end = None if minutes is None else start + 60.0 * minutes
         self.pick_steps = pick_steps
         self.stopped = False
 
-    def reserve(self, steps_per_second: float | None) -> float:
-        """Seconds kept for the pick; before the pool has a pace, as if it ran 5,000 steps a second."""
+    def reserve(self, steps_per_second: float | None, iterations: int) -> float:
+        """Seconds kept for the pick after ``iterations`` selections (one new agent each at most,
+        so that many candidates and the initial agent); before the pool has a pace, a slow one's."""
+        from rl_pool.commands.pick import DEFAULT_TOP
+
         if not self.pick_steps:
             return 0.0
-        rate = steps_per_second if steps_per_second and math.isfinite(steps_per_second) else 5000.0
-        return PICK_OVERHEAD + PICK_MARGIN * self.pick_steps / max(rate, 1.0)
+        rate = steps_per_second if steps_per_second and math.isfinite(steps_per_second) else SLOW_PACE
+        candidates = min(DEFAULT_TOP, max(iterations, 0)) + 1
+        return PICK_OVERHEAD + PICK_MARGIN * candidates * self.pick_steps / max(rate, 1.0)
 
-    def due(self, steps_per_second: float | None, now: float | None = None) -> bool:
+    def due(self, steps_per_second: float | None, iterations: int, now: float | None = None) -> bool:
         if self.end is None:
             return False
-        now = time.time() if now is None else now
-        return now >= self.end - self.reserve(steps_per_second)
+        now = time.monotonic() if now is None else now
+        return now >= self.end - self.reserve(steps_per_second, iterations)
 
 
 #: Only the first signal stops the pool: a second Ctrl-C, or the same signal sent to the whole
@@ -239,24 +242,24 @@ def _watch(paths, procs, quiet, interval, started, target, budget: Budget) -> li
     tracker = progress.Tracker(paths.root, since=started, target=target)
     display = contextlib.nullcontext() if quiet else progress.Display(sys.stdout, interval=interval)
     next_poll = 0.0
-    pace = None
+    pace, iterations = None, 0
     with display:
         while True:
             codes = [p.poll() for p in procs]
             done = all(c is not None for c in codes)
             failed = any(c not in (None, 0) for c in codes) and not done
             now = time.monotonic()
-            if (not quiet or budget.end is not None) and (now >= next_poll or done or failed):
+            if (not quiet or budget.pick_steps) and (now >= next_poll or done or failed):
                 snap = tracker.poll()
-                pace = snap.steps_per_second or pace
+                pace, iterations = snap.steps_per_second or pace, snap.iteration
                 if not quiet:
                     display.update(snap)
                 next_poll = now + 0.5
             if failed or done:
                 break
-            if budget.due(pace):
+            if budget.due(pace, iterations, now):
                 budget.stopped = True
-                return _stop_all(procs, signal.SIGTERM)
+                return _stop_all(procs, signal.SIGTERM, keep=codes)
             _interrupt.check()
             time.sleep(0.1)
     if failed:

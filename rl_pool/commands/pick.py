@@ -73,6 +73,21 @@ def candidates(paths: layout.Paths, top: int) -> tuple[list[dict], int]:
     return [c | {"last": c is last} for c in chosen], len(seen)
 
 
+def _pool_agent_meta(paths: layout.Paths):
+    """The description every agent of the pool shares (its initial agent's, a decided file), or None."""
+    try:
+        return deposits.load_selected_agent(paths, 0).meta
+    except (OSError, ValueError, AgentFileError):
+        return None
+
+
+def episode_steps(paths: layout.Paths) -> int:
+    """The env steps one candidate's held-out episodes of a default pick take at most: each as
+    long as the pool's episodes (1000 where the pool has no initial agent to say)."""
+    meta = _pool_agent_meta(paths)
+    return DEFAULT_EPISODES * max(1, meta.max_episode_steps if meta is not None else 1000)
+
+
 # Worker processes keep one environment per (task, kwargs, episode length) for every candidate they run.
 _ENVS: dict[str, object] = {}
 
@@ -132,10 +147,7 @@ def pick(pool_dir: str, top: int = DEFAULT_TOP, episodes: int = DEFAULT_EPISODES
     cfg = pool.read_config(paths, readonly=True)  # a foreign directory is refused here
     verified = pool.attach_key(paths, required=False)
     found, distinct = candidates(paths, top)
-    try:  # the pool's own agent description (the initial agent, a decided file)
-        like = deposits.load_selected_agent(paths, 0).meta
-    except (OSError, ValueError, AgentFileError):
-        like = None
+    like = _pool_agent_meta(paths)
     t0 = time.perf_counter()
     ok, skipped = [], []
     for c in found:

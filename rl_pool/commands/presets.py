@@ -49,6 +49,10 @@ PRESETS: dict[str, dict] = {
 }
 
 
+#: Preset keys that are ``launch`` options, not pool or member settings.
+LAUNCH_ONLY = ("pick",)
+
+
 def get(name: str) -> dict:
     try:
         return PRESETS[name]
@@ -110,7 +114,8 @@ def merged_options(preset: dict, pool_size: int, merge: str, selection: str) -> 
 def needless(preset: dict, value) -> set[str]:
     """The preset's options that the pool's other settings (``value(name)``: the final value of an
     option) leave nothing to do, and that the pool's checks would refuse for it: sharpening at
-    reverts (``revert_sharpen``) without reverts or without the ``exp`` link."""
+    reverts (``revert_sharpen``, or ``merged_revert_sharpen`` in pools that merge) without
+    reverts or without the ``exp`` link."""
     sharpens = "revert_sharpen" in preset or "merged_revert_sharpen" in preset
     if sharpens and (not value("revert_after") or value("link") != "exp"):
         return {"revert_sharpen"}
