@@ -26,6 +26,7 @@ import sys
 import time
 
 from rl_pool import fsutil
+from rl_pool.commands import pick as picking
 from rl_pool.commands import progress, status
 from rl_pool.config import MemberConfig
 from rl_pool.errors import SignalLatch, UsageError, drop_output
@@ -90,7 +91,6 @@ def launch(pool_dir: str, requested: dict, member_opts: dict, learning_rates: li
     ``minutes``: stop the members after this much wall-clock time (not a failure); ``pick``: then,
     or when they are done, pick the pool's agent on held-out episodes (within ``minutes``).
     """
-    from rl_pool.commands import pick as picking
     from rl_pool.commands.member import check_arguments, make_initial
 
     paths = layout.Paths(pool_dir)
@@ -166,8 +166,6 @@ STOPPED = (128 + signal.SIGTERM, -signal.SIGTERM, -signal.SIGKILL)
 
 def _pick(paths: layout.Paths, n: int) -> int:
     """The run's last step: ``rl-pool pick`` with its defaults, on as many workers as members (or cores)."""
-    from rl_pool.commands import pick as picking
-
     try:
         res = picking.pick(paths.root, workers=max(1, min(n, os.cpu_count() or 1)))
     except UsageError as exc:
@@ -202,12 +200,10 @@ class Budget:
     def reserve(self, steps_per_second: float | None, iterations: int) -> float:
         """Seconds kept for the pick after ``iterations`` selections (one new agent each at most,
         so that many candidates and the initial agent); before the pool has a pace, a slow one's."""
-        from rl_pool.commands.pick import DEFAULT_TOP
-
         if not self.pick_steps:
             return 0.0
         rate = steps_per_second if steps_per_second and math.isfinite(steps_per_second) else SLOW_PACE
-        candidates = min(DEFAULT_TOP, max(iterations, 0)) + 1
+        candidates = min(picking.DEFAULT_TOP, max(iterations, 0)) + 1
         return PICK_OVERHEAD + PICK_MARGIN * candidates * self.pick_steps / max(rate, 1.0)
 
     def due(self, steps_per_second: float | None, iterations: int, now: float | None = None) -> bool:
