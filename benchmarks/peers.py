@@ -383,9 +383,9 @@ def run_ars(a, workdir: str) -> dict:
 # rl-pool: ``rl-pool launch``; this process reads best.npz while it runs.
 
 
-def _read_agent(pool_dir: str, stem: str) -> tuple[bytes, dict, float] | None:
-    """``STEM.npz``'s bytes, ``STEM.json`` (for ``picked``, its ``picked`` record) and when the JSON
-    was written, when the two agree (a reader can land between the writes)."""
+def _read_agent(pool_dir: str, stem: str, record: str | None = None) -> tuple[bytes, dict, float] | None:
+    """``STEM.npz``'s bytes, ``STEM.json`` (or its ``record`` entry) and when the JSON was written,
+    when the two agree (a reader can land between the writes)."""
     try:
         with open(os.path.join(pool_dir, stem + ".npz"), "rb") as fh:
             data = fh.read()
@@ -394,8 +394,8 @@ def _read_agent(pool_dir: str, stem: str) -> tuple[bytes, dict, float] | None:
             doc = json.load(fh)
     except (OSError, ValueError):
         return None
-    if stem == "picked" and isinstance(doc, dict):
-        doc = doc.get("picked")
+    if record is not None and isinstance(doc, dict):
+        doc = doc.get(record)
     if not isinstance(doc, dict) or doc.get("agent_sha256") != hashlib.sha256(data).hexdigest():
         return None
     return data, doc, written
@@ -431,7 +431,7 @@ def run_rlpool(a, workdir: str) -> dict:
                                  else exited and (proc.returncode == 0 or now > seconds)):
                     fraction, mark = marks.pop(0)
                     name = f"ck-{round(fraction * 100)}.npz"
-                    picked = _read_agent(pool_dir, "picked") if fraction == 1.0 else None
+                    picked = _read_agent(pool_dir, "picked", "picked") if fraction == 1.0 else None
                     if picked is not None and picked[2] >= t0:  # this launch's pick, not an old one
                         latest = {"data": picked[0], "doc": picked[1] | {"picked": True},
                                   "seconds": picked[2] - t0}

@@ -135,8 +135,9 @@ def _why_not_playable(data: bytes, digest: str, source: str, cfg, like=None) -> 
     return None
 
 
-def pick(pool_dir: str, top: int = DEFAULT_TOP, episodes: int = DEFAULT_EPISODES, seed: int = DEFAULT_SEED, workers: int = 1,
-         mode: str = "mean", out: str | None = None, finalists: int = 0, final_episodes: int = 100) -> dict:
+def pick(pool_dir: str, top: int = DEFAULT_TOP, episodes: int = DEFAULT_EPISODES, seed: int = DEFAULT_SEED,
+         workers: int = 1, mode: str = "mean", out: str | None = None, finalists: int = 0,
+         final_episodes: int = 100) -> dict:
     """Run the candidates on ``episodes`` held-out episodes; with ``finalists`` K, the K best of them
     on ``final_episodes`` more, and pick the finalist with the highest mean over all its episodes."""
     if top < 0 or episodes < 1 or workers < 1 or finalists < 0 or final_episodes < 1:
