@@ -119,8 +119,8 @@ class PoolConfig:
                                      "with its Beta shapes' excess over 1 times F: less action noise from there "
                                      "on, kept where the branches then find a new best, so it compounds only "
                                      "while it pays (1: never)", added=True)
-    init_agent: str = opt("", "start the pool from this agent (an agent file, or a pool directory: its best "
-                              "agent) instead of a fresh one: its weights and observation statistics, with fresh "
+    init_agent: str = opt("", "start the pool from this agent (an agent file, or a pool directory: its "
+                              "current pick, else its best agent) instead of a fresh one: its weights and observation statistics, with fresh "
                               "Adam moments; it must be an agent for the same task and policy (--init-shape then "
                               "does not apply)", added=True)
     #: the sha256 of --init-agent's bytes, recorded when the pool is made: a member that builds

@@ -186,6 +186,39 @@ def test_a_directory_at_the_pick_is_set_aside(pool_dir, tmp_path):
     assert (d / "picked.npz").is_file() and Agent.load(d / "picked.npz") is not None
 
 
+def test_a_pool_directory_means_its_pick_while_the_pick_covers_its_last_iteration(pool_dir, tmp_path):
+    """``evaluate POOL`` (and replay, --init-agent) take ``picked.npz`` once a pick covers the
+    pool's last selection; a pick whose file no longer holds the agent it names, or a pool that
+    trained on after it, gives ``best.npz`` back."""
+    import shutil
+
+    d = tmp_path / "copy"
+    shutil.copytree(pool_dir, d)
+    for f in ("picked.npz", "picked.json"):
+        (d / f).unlink(missing_ok=True)
+
+    def agent_of(target):
+        return json.loads(rl_pool("evaluate", target, "--episodes", 1, "--json", check=0).stdout)["agent"]
+
+    assert agent_of(d) == str(d / "best.npz")  # no pick yet
+    rl_pool("pick", d, "--top", 0, "--episodes", 2, check=0)
+    doc = json.loads((d / "picked.json").read_bytes())
+    assert doc["pool_iteration"] == ITERS
+    assert agent_of(d) == str(d / "picked.npz")
+    text = rl_pool("evaluate", d, "--episodes", 1, check=0).stdout
+    assert text.startswith(f"{d / 'picked.npz'}: 1 episodes: mean ")
+    # a file that is not the agent its JSON names does not count
+    good = (d / "picked.npz").read_bytes()
+    shutil.copy(RESULTS / "hopper-v5" / "best.npz", d / "picked.npz")
+    assert agent_of(d) == str(d / "best.npz")
+    (d / "picked.npz").write_bytes(good)
+    assert agent_of(d) == str(d / "picked.npz")
+    # the pool trains on: its new agents were never in the pick
+    rl_pool("launch", "--pool-dir", d, "--pool-size", 2, "--learning-rates", "0.03,0.3", "--iterations", ITERS + 1,
+            "--selection", "branches", *SHORT, "--quiet", check=0)
+    assert agent_of(d) == str(d / "best.npz")
+
+
 @pytest.mark.parametrize("args, message", [
     (["--top", "-1"], "--top and --finalists must be >= 0"),
     (["--episodes", "0"], "--episodes, --final-episodes and --workers positive"),

@@ -210,7 +210,7 @@ def cmd_evaluate(args) -> int:
     if args.json:
         print(json.dumps(res))
     else:
-        print(f"{res['episodes']} episodes: mean {res['mean_return']:.2f} ± {res['std_return']:.2f} "
+        print(f"{res['agent']}: {res['episodes']} episodes: mean {res['mean_return']:.2f} ± {res['std_return']:.2f} "
               f"(min {min(res['returns']):.2f}, max {max(res['returns']):.2f}) in {res['seconds']:.1f}s "
               f"on {res['workers']} workers")
     return 0
@@ -310,7 +310,8 @@ def build_parser() -> argparse.ArgumentParser:
     pl.set_defaults(func=cmd_plot)
 
     ev = sub.add_parser("evaluate", help="run an agent (or a pool's best) on fresh episodes")
-    ev.add_argument("target", help="a pool directory (its best.npz) or an agent .npz")
+    ev.add_argument("target", help="a pool directory (its pick, POOL/picked.npz, while that covers the pool's "
+                    "last iteration; else its best.npz) or an agent .npz")
     ev.add_argument("--episodes", type=int, default=10)
     ev.add_argument("--workers", type=int, default=1, help="worker processes (spawned, one math thread each)")
     ev.add_argument("--seed", type=_seed, default=1_000_000, help="first episode's reset seed; episode k uses seed+k")
@@ -342,7 +343,7 @@ def build_parser() -> argparse.ArgumentParser:
     pk.set_defaults(func=cmd_pick)
 
     rp = sub.add_parser("replay", help="render an agent offscreen to a GIF or MP4")
-    rp.add_argument("target", help="a pool directory (its best.npz) or an agent .npz")
+    rp.add_argument("target", help="a pool directory (its current pick, else its best.npz) or an agent .npz")
     rp.add_argument("--out", required=True, help="FILE.gif or FILE.mp4")
     rp.add_argument("--steps", type=int, default=0, help="steps to render (default: one episode)")
     rp.add_argument("--seed", type=_seed, default=0, help="the episode's reset seed")

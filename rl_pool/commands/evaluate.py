@@ -157,20 +157,30 @@ def evaluate_bytes(agent_bytes: bytes, episodes: int, workers: int = 1, seed: in
 
 
 def resolve_agent(target: str) -> tuple[str, bytes]:
-    """A pool directory (its best agent) or an agent file -> ``(path, bytes)``, checked.
+    """A pool directory (its agent: the pick when there is a current one, else ``best.npz``) or an
+    agent file -> ``(path, bytes)``, checked.
 
-    Read bounded and without blocking (:mod:`rl_pool.fsutil`): a pool's ``best.npz``
-    is never read through a symbolic link; an agent file the user names may be one,
-    but must lead to a regular file. Reads only: works on a read-only pool.
+    A pool's pick (``POOL/picked.npz``, from ``rl-pool pick`` or ``launch --pick``) counts while
+    it covers the pool's last selection (:func:`rl_pool.commands.pick.current_pick`); once the
+    pool trains on, ``best.npz`` does again. Read bounded and without blocking
+    (:mod:`rl_pool.fsutil`): a pool's files are never read through a symbolic link; an agent
+    file the user names may be one, but must lead to a regular file. Reads only: works on a
+    read-only pool.
     """
     from rl_pool import fsutil
+    from rl_pool.commands.pick import current_pick
     from rl_pool.errors import AgentFileError, UsageError
     from rl_pool.maths.agent import Agent
     from rl_pool.protocol import layout, pool
 
     path, root, follow = target, None, True
     if os.path.isdir(target):
-        pool.read_config(layout.Paths(target), readonly=True)  # a foreign directory is refused here
+        paths = layout.Paths(target)
+        pool.read_config(paths, readonly=True)  # a foreign directory is refused here
+        pick = current_pick(paths)
+        if pick is not None:
+            Agent.from_bytes(pick[1], source=pick[0])
+            return pick
         path, root, follow = os.path.join(target, "best.npz"), target, False
         if not os.path.lexists(path):
             raise UsageError(f"pool {target} has no best agent yet (no iteration completed)")

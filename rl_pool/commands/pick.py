@@ -45,17 +45,20 @@ DEFAULT_TOP = 20
 DEFAULT_EPISODES = 20
 
 
-def candidates(paths: layout.Paths, top: int) -> tuple[list[dict], int]:
-    """``(candidates, distinct agents selected)``: the ``top`` distinct selected agents by the best
-    evaluation return each reached (0: all; ties: the earlier iteration), then the last selected
-    agent if it is not among them. Each: ``agent`` (path in the pool), ``agent_sha256``,
-    ``iteration`` (where it reached that return), ``eval_return``, ``last`` (the last selected)."""
+def candidates(paths: layout.Paths, top: int) -> tuple[list[dict], int, int]:
+    """``(candidates, distinct agents selected, the last iteration with a selection)``: the ``top``
+    distinct selected agents by the best evaluation return each reached (0: all; ties: the earlier
+    iteration), then the last selected agent if it is not among them. Each: ``agent`` (path in the
+    pool), ``agent_sha256``, ``iteration`` (where it reached that return), ``eval_return``, ``last``
+    (the last selected)."""
     seen: dict[str, dict] = {}
     last = None
+    last_iteration = -1
     for i in deposits.iterations_on_disk(paths):
         sel = deposits.read_selected(paths, i)
         if sel is None or not isinstance(sel.get("agent"), str) or not isinstance(sel.get("agent_sha256"), str):
             continue
+        last_iteration = i
         ret = sel.get("eval_return")
         ret = float(ret) if isinstance(ret, (int, float)) and not isinstance(ret, bool) else None
         c = seen.get(sel["agent_sha256"])
@@ -70,7 +73,7 @@ def candidates(paths: layout.Paths, top: int) -> tuple[list[dict], int]:
     chosen = ranked if top == 0 else ranked[:top]
     if last is not None and last not in chosen:
         chosen.append(last)
-    return [c | {"last": c is last} for c in chosen], len(seen)
+    return [c | {"last": c is last} for c in chosen], len(seen), last_iteration
 
 
 def _pool_agent_meta(paths: layout.Paths):
@@ -86,6 +89,26 @@ def episode_steps(paths: layout.Paths) -> int:
     long as the pool's episodes (1000 where the pool has no initial agent to say)."""
     meta = _pool_agent_meta(paths)
     return DEFAULT_EPISODES * max(1, meta.max_episode_steps if meta is not None else 1000)
+
+
+def current_pick(paths: layout.Paths) -> tuple[str, bytes] | None:
+    """``(POOL/picked.npz, its bytes)`` when that file is the pick of the pool as it stands, else
+    None: its ``picked.json`` saw the pool's last selection (a pool trained on after its pick has
+    agents the pick never ran), and the file holds the agent that JSON names, which a selection of
+    the pool chose. Read bounded, never through a link, as ``best.npz`` is."""
+    npz = os.path.join(paths.root, "picked.npz")
+    try:
+        doc = fsutil.read_json(os.path.join(paths.root, "picked.json"), root=paths.root)
+        picked = doc["picked"]
+        if doc["pool_iteration"] != deposits.last_selected(paths):
+            return None
+        sel = deposits.read_selected(paths, picked["iteration"])
+        if sel is None or sel.get("agent_sha256") != picked["agent_sha256"]:
+            return None
+        data = fsutil.read_bytes(npz, fsutil.AGENT_MAX_BYTES, root=paths.root)
+    except (OSError, ValueError, KeyError, TypeError):
+        return None
+    return (npz, data) if layout.sha256(data) == picked["agent_sha256"] else None
 
 
 # Worker processes keep one environment per (task, kwargs, episode length) for every candidate they run.
@@ -147,7 +170,7 @@ def pick(pool_dir: str, top: int = DEFAULT_TOP, episodes: int = DEFAULT_EPISODES
     paths = layout.Paths(pool_dir)
     cfg = pool.read_config(paths, readonly=True)  # a foreign directory is refused here
     verified = pool.attach_key(paths, required=False)
-    found, distinct = candidates(paths, top)
+    found, distinct, last_iteration = candidates(paths, top)
     like = _pool_agent_meta(paths)
     t0 = time.perf_counter()
     ok, skipped = [], []
@@ -190,7 +213,7 @@ def pick(pool_dir: str, top: int = DEFAULT_TOP, episodes: int = DEFAULT_EPISODES
     meta = os.path.splitext(npz)[0] + ".json"
     summary = {"pool_dir": str(paths.root), "verified": verified, "episodes": episodes, "seed": seed,
                "mode": mode, "top": top, "finalists": finalists, "final_episodes": final_episodes if finalists else 0,
-               "distinct_agents": distinct, "seconds": time.perf_counter() - t0,
+               "distinct_agents": distinct, "pool_iteration": last_iteration, "seconds": time.perf_counter() - t0,
                "picked": {k: chosen[k] for k in ("iteration", "agent", "agent_sha256", "eval_return",
                                                  "mean_return", "std_return", "episodes")},
                "out": npz}
