@@ -120,9 +120,9 @@ class PoolConfig:
                                      "on, kept where the branches then find a new best, so it compounds only "
                                      "while it pays (1: never)", added=True)
     init_agent: str = opt("", "start the pool from this agent (an agent file, or a pool directory: its "
-                              "current pick, else its best agent) instead of a fresh one: its weights and observation statistics, with fresh "
-                              "Adam moments; it must be an agent for the same task and policy (--init-shape then "
-                              "does not apply)", added=True)
+                              "current pick, else its best agent) instead of a fresh one: its weights and "
+                              "observation statistics, with fresh Adam moments; it must be an agent for the same "
+                              "task and policy (--init-shape then does not apply)", added=True)
     #: the sha256 of --init-agent's bytes, recorded when the pool is made: a member that builds
     #: iteration 0 later (a racing start, another host) must read the same agent
     init_agent_sha256: str = opt("", "", added=True, internal=True)

@@ -66,6 +66,27 @@ def test_a_preset_grown_to_more_members_keeps_its_rates(size, want, tmp_path, mo
     assert [presets.member_learning_rate(presets.PRESETS["halfcheetah"], m, size) for m in range(size)] == want
 
 
+#: Where each preset's committed run lives (results/README.md); swimmer's predates pool.json exports.
+COMMITTED = {"halfcheetah": "halfcheetah-v5", "hopper": "hopper-v5", "walker2d": "walker2d-v5", "ant": "ant-v5",
+             "inverted-double-pendulum": "inverted-double-pendulum-v5", "reacher": "reacher-v5",
+             "inverted-pendulum": "inverted-pendulum-v5", "pusher": "pusher-v5", "humanoid": "humanoid-v5",
+             "humanoid-standup": "humanoidstandup-v5"}
+
+
+@pytest.mark.parametrize("name", sorted(COMMITTED))
+def test_each_committed_run_is_its_preset(name, tmp_path):
+    """The pool.json of ``results/<task>/`` holds what ``--preset NAME`` sets for that run's seed and
+    size: a preset changed without its committed run redone fails here."""
+    import json
+
+    with open(os.path.join(os.path.dirname(__file__), "..", "results", COMMITTED[name], "pool.json")) as fh:
+        made = json.load(fh)
+    _, cfg = _launch_config(name, tmp_path, "--seed", str(made["seed"]), "--pool-size", str(made["pool_size"]))
+    for f in fields(cfg):
+        if f.name in made and f.name != "max_episode_steps":  # 0 in a config: the env's own, resolved when made
+            assert json.loads(json.dumps(getattr(cfg, f.name))) == made[f.name], f.name
+
+
 @pytest.mark.parametrize("doc", ["README.md", "docs/usage.md"])
 def test_every_preset_is_in_the_docs_tables(doc):
     """The presets tables of the README and the usage page name every preset and its env."""
