@@ -363,8 +363,12 @@ def read_bytes(path, cap: int = AGENT_MAX_BYTES, retries: int = 3, missing_retri
 
 def read_json(path, missing_retries: int = 0, root=None, cap: int = JSON_MAX_BYTES):
     """Parse a JSON file read as :func:`read_bytes` does; raises OSError (UnsafeFile included)
-    or ValueError (incl. JSONDecodeError, UnicodeDecodeError)."""
-    return json.loads(read_bytes(path, cap, missing_retries=missing_retries, root=root).decode("utf-8"))
+    or ValueError (incl. JSONDecodeError, UnicodeDecodeError, and nesting too deep to parse)."""
+    data = read_bytes(path, cap, missing_retries=missing_retries, root=root).decode("utf-8")
+    try:
+        return json.loads(data)
+    except RecursionError:  # a megabyte of "[" parses past the interpreter's stack
+        raise ValueError(f"{path}: JSON nested too deeply") from None
 
 
 def lstat(path, root=None) -> os.stat_result:

@@ -213,6 +213,15 @@ def test_a_pool_directory_means_its_pick_while_the_pick_covers_its_last_iteratio
     assert agent_of(d) == str(d / "best.npz")
     (d / "picked.npz").write_bytes(good)
     assert agent_of(d) == str(d / "picked.npz")
+    # a pick that does not say which iteration it saw (written before picks recorded it) does not count,
+    # nor does one whose JSON will not parse
+    text = (d / "picked.json").read_text()
+    (d / "picked.json").write_text(json.dumps({k: v for k, v in doc.items() if k != "pool_iteration"}))
+    assert agent_of(d) == str(d / "best.npz")
+    (d / "picked.json").write_text("[" * 200_000)
+    assert agent_of(d) == str(d / "best.npz")
+    (d / "picked.json").write_text(text)
+    assert agent_of(d) == str(d / "picked.npz")
     # the pool trains on: its new agents were never in the pick
     rl_pool("launch", "--pool-dir", d, "--pool-size", 2, "--learning-rates", "0.03,0.3", "--iterations", ITERS + 1,
             "--selection", "branches", *SHORT, "--quiet", check=0)

@@ -177,6 +177,7 @@ def resolve_agent(target: str) -> tuple[str, bytes]:
     if os.path.isdir(target):
         paths = layout.Paths(target)
         pool.read_config(paths, readonly=True)  # a foreign directory is refused here
+        pool.attach_key(paths, required=False)  # with the key, only signed selections vouch for a pick
         pick = current_pick(paths)
         if pick is not None:
             Agent.from_bytes(pick[1], source=pick[0])

@@ -56,9 +56,10 @@ def candidates(paths: layout.Paths, top: int) -> tuple[list[dict], int, int]:
     last_iteration = -1
     for i in deposits.iterations_on_disk(paths):
         sel = deposits.read_selected(paths, i)
+        if sel is not None:
+            last_iteration = i  # as deposits.last_selected counts it, which current_pick compares with
         if sel is None or not isinstance(sel.get("agent"), str) or not isinstance(sel.get("agent_sha256"), str):
             continue
-        last_iteration = i
         ret = sel.get("eval_return")
         ret = float(ret) if isinstance(ret, (int, float)) and not isinstance(ret, bool) else None
         c = seen.get(sel["agent_sha256"])
