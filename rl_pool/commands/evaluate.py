@@ -173,24 +173,24 @@ def resolve_agent(target: str) -> tuple[str, bytes]:
     from rl_pool.maths.agent import Agent
     from rl_pool.protocol import layout, pool
 
-    path, root, follow = target, None, True
+    path, root, follow, pick = target, None, True, None
     if os.path.isdir(target):
         paths = layout.Paths(target)
         pool.read_config(paths, readonly=True)  # a foreign directory is refused here
         pool.attach_key(paths, required=False)  # with the key, only signed selections vouch for a pick
         pick = current_pick(paths)
-        if pick is not None:
-            Agent.from_bytes(pick[1], source=pick[0])
-            return pick
         path, root, follow = os.path.join(target, "best.npz"), target, False
-        if not os.path.lexists(path):
+        if pick is None and not os.path.lexists(path):
             raise UsageError(f"pool {target} has no best agent yet (no iteration completed)")
     elif not os.path.lexists(target):
         raise UsageError(f"no agent file or pool directory at {target}")
-    try:
-        data = fsutil.read_bytes(path, fsutil.AGENT_MAX_BYTES, root=root, follow=follow)
-    except OSError as exc:
-        raise AgentFileError(f"cannot read agent {path}: {exc.strerror or exc}") from None
+    if pick is not None:
+        path, data = pick
+    else:
+        try:
+            data = fsutil.read_bytes(path, fsutil.AGENT_MAX_BYTES, root=root, follow=follow)
+        except OSError as exc:
+            raise AgentFileError(f"cannot read agent {path}: {exc.strerror or exc}") from None
     Agent.from_bytes(data, source=path)  # AgentFileError (a UsageError) if it is not an agent
     return path, data
 

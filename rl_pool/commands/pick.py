@@ -45,19 +45,15 @@ DEFAULT_TOP = 20
 DEFAULT_EPISODES = 20
 
 
-def candidates(paths: layout.Paths, top: int) -> tuple[list[dict], int, int]:
-    """``(candidates, distinct agents selected, the last iteration with a selection)``: the ``top``
-    distinct selected agents by the best evaluation return each reached (0: all; ties: the earlier
-    iteration), then the last selected agent if it is not among them. Each: ``agent`` (path in the
-    pool), ``agent_sha256``, ``iteration`` (where it reached that return), ``eval_return``, ``last``
-    (the last selected)."""
+def candidates(paths: layout.Paths, top: int) -> tuple[list[dict], int]:
+    """``(candidates, distinct agents selected)``: the ``top`` distinct selected agents by the best
+    evaluation return each reached (0: all; ties: the earlier iteration), then the last selected
+    agent if it is not among them. Each: ``agent`` (path in the pool), ``agent_sha256``,
+    ``iteration`` (where it reached that return), ``eval_return``, ``last`` (the last selected)."""
     seen: dict[str, dict] = {}
     last = None
-    last_iteration = -1
     for i in deposits.iterations_on_disk(paths):
         sel = deposits.read_selected(paths, i)
-        if sel is not None:
-            last_iteration = i  # as deposits.last_selected counts it, which current_pick compares with
         if sel is None or not isinstance(sel.get("agent"), str) or not isinstance(sel.get("agent_sha256"), str):
             continue
         ret = sel.get("eval_return")
@@ -74,7 +70,7 @@ def candidates(paths: layout.Paths, top: int) -> tuple[list[dict], int, int]:
     chosen = ranked if top == 0 else ranked[:top]
     if last is not None and last not in chosen:
         chosen.append(last)
-    return [c | {"last": c is last} for c in chosen], len(seen), last_iteration
+    return [c | {"last": c is last} for c in chosen], len(seen)
 
 
 def _pool_agent_meta(paths: layout.Paths):
@@ -171,7 +167,9 @@ def pick(pool_dir: str, top: int = DEFAULT_TOP, episodes: int = DEFAULT_EPISODES
     paths = layout.Paths(pool_dir)
     cfg = pool.read_config(paths, readonly=True)  # a foreign directory is refused here
     verified = pool.attach_key(paths, required=False)
-    found, distinct, last_iteration = candidates(paths, top)
+    # read before the candidates: an iteration that lands meanwhile leaves the pick stale, not wrong
+    last_iteration = deposits.last_selected(paths)
+    found, distinct = candidates(paths, top)
     like = _pool_agent_meta(paths)
     t0 = time.perf_counter()
     ok, skipped = [], []
