@@ -1,5 +1,6 @@
 """Presets: every one names real options and makes a valid pool; explicit options win."""
 
+import json
 import os
 from dataclasses import fields
 
@@ -79,8 +80,6 @@ def test_each_committed_run_is_its_preset(name, tmp_path):
     """The pool.json of ``results/<task>/`` holds the pool-wide settings ``--preset NAME`` makes for
     that run's seed and size: a preset changed without its committed run redone fails here (the
     learning rates are members' settings, in command.txt, not pool.json)."""
-    import json
-
     assert set(COMMITTED) == set(presets.PRESETS) - {"swimmer"}
     with open(os.path.join(os.path.dirname(__file__), "..", "results", COMMITTED[name], "pool.json")) as fh:
         made = json.load(fh)
