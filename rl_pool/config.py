@@ -60,6 +60,11 @@ class PoolConfig:
     value_epochs: int = opt(10, "Adam steps the value network of --baseline value takes on each batch (the "
                                 "first beside the policy's step, the rest on the value network alone)",
                             added=True, before=1)
+    policy_epochs: int = opt(1, "Adam steps the policy takes on each batch: the REINFORCE step, then K - 1 "
+                                "more up PPO's clipped surrogate against the policy that drew the batch "
+                                "(1: REINFORCE alone)", added=True)
+    clip: float = opt(0.2, "with --policy-epochs above 1: how far the probability ratio of the extra steps "
+                           "may move from 1 before their gradient stops (PPO's epsilon)", added=True)
     gae_lambda: float = opt(1.0, "lambda of generalised advantage estimation, with the baseline as the value "
                                  "function (1: the return-to-go minus the baseline; below 1: less variance, "
                                  "some bias)", added=True)
@@ -149,11 +154,18 @@ class PoolConfig:
         """Check every field; returns the config with derived defaults resolved (``batch_episodes`` 0)."""
         if self.batch_episodes == 0 and self.train_episodes >= 1:
             return dataclasses.replace(self, batch_episodes=min(10, self.train_episodes)).validate()
-        for name in ("pool_size", "train_episodes", "batch_episodes", "eval_episodes", "value_epochs"):
+        for name in ("pool_size", "train_episodes", "batch_episodes", "eval_episodes", "value_epochs",
+                     "policy_epochs"):
             if getattr(self, name) < 1:
                 raise UsageError(f"--{name.replace('_', '-')} must be a positive integer, got {getattr(self, name)}")
         if self.value_epochs > 1000:
             raise UsageError(f"--value-epochs must be at most 1000, got {self.value_epochs}")
+        if self.policy_epochs > 1000:
+            raise UsageError(f"--policy-epochs must be at most 1000, got {self.policy_epochs}")
+        if not (math.isfinite(self.clip) and 0.0 < self.clip <= 10.0):
+            raise UsageError(f"--clip must be in (0, 10], got {self.clip}")
+        if self.policy_epochs > 1 and self.optimizer != "adam":
+            raise UsageError("--policy-epochs above 1 needs --optimizer adam")
         if self.max_episode_steps < 0:
             raise UsageError(f"--max-episode-steps must be >= 0, got {self.max_episode_steps}")
         if self.train_episodes % self.batch_episodes:

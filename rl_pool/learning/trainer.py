@@ -115,8 +115,13 @@ def train(agent: Agent, envs, cfg: PoolConfig, lr: float, member: int, iteration
         v = learner.values(params, x, spec) if spec.value else None
         adv = returns.advantages(rewards, batch.mask, cfg.gamma, cfg.baseline, x, cfg.gae_lambda, v, g)
         targets = returns.value_targets(g, batch.mask) if spec.value else None
+        # the policy that drew the batch, for the ratios of --policy-epochs' extra steps
+        logp_old = learner.log_prob(params, x, batch.u, spec) if cfg.policy_epochs > 1 else None
         params, opt, gnorm = learner.update(params, opt, x, batch.u, adv, batch.mask, lr,
                                             cfg.optimizer, spec, targets)
+        if cfg.policy_epochs > 1:
+            params, opt = learner.policy_epochs(params, opt, x, batch.u, adv, batch.mask, logp_old, lr,
+                                                cfg.clip, cfg.policy_epochs - 1, spec)
         if spec.value and cfg.value_epochs > 1:
             params, opt = learner.fit_value(params, opt, x, targets, batch.mask, lr, cfg.value_epochs - 1, spec)
         norm = normalizer.update(norm, batch.obs[batch.mask > 0])

@@ -133,9 +133,16 @@ def _update(params, m, v, t, x, u, adv, mask, lr, optimizer, spec, targets):
     return params, m, v, t, gnorm
 
 
-#: fit_value cuts a batch after its longest episode, rounded up to a multiple of this (a few shapes
+#: fit_value and policy_epochs cut a batch after its longest episode, rounded up to a multiple of this (a few shapes
 #: to compile, and short episodes do not pay for the padding to the limit)
 FIT_BUCKET = 100
+
+
+def _cut(mask) -> int:
+    """The padded length a batch can be cut to: past its longest episode, rounded up to a multiple
+    of :data:`FIT_BUCKET` (the steps after it are all padding)."""
+    longest = int(np.flatnonzero(mask.any(axis=0))[-1]) + 1 if mask.any() else 1
+    return min(mask.shape[1], -(-longest // FIT_BUCKET) * FIT_BUCKET)
 
 
 @partial(jax.jit, static_argnames=("spec", "steps", "limit"))
@@ -161,11 +168,62 @@ def fit_value(params: dict, opt: OptState, x, targets, mask, lr: float, steps: i
     if opt.t < 1:
         raise ValueError("fit_value follows an update: the step count must be at least 1")
     limit = mask.shape[1]
-    longest = int(np.flatnonzero(mask.any(axis=0))[-1]) + 1 if mask.any() else 1
-    cut = min(limit, -(-longest // FIT_BUCKET) * FIT_BUCKET)  # the steps after it are all padding
+    cut = _cut(mask)
     p, m, v = jax.device_get(_fit_value(params, opt.m, opt.v, opt.t, x[:, :cut], targets[:, :cut],
                                         mask[:, :cut], float(lr), spec, int(steps), limit))
     return params | _as_numpy(p), OptState(opt.m | _as_numpy(m), opt.v | _as_numpy(v), opt.t)
+
+
+def clipped_objective(params, x, u, adv, mask, logp_old, clip, spec: policy.PolicySpec):
+    """PPO's clipped surrogate (Schulman et al. 2017) on a batch drawn by the policy whose
+    log-probabilities were ``logp_old``: ``(1 / n) * sum mask * min(r A, clip(r, 1 - c, 1 + c) A)``
+    with ``r = pi_w(u | x) / pi_old(u | x)``. At ``w = old`` its gradient is the REINFORCE one."""
+    logp = policy.log_prob_unit(params, x, u, spec, xp=jnp, gammaln=gammaln)
+    ratio = jnp.exp(logp - logp_old)
+    s = jnp.minimum(ratio * adv, jnp.clip(ratio, 1.0 - clip, 1.0 + clip) * adv)
+    return (s * mask).sum() / jnp.maximum(mask.sum(), 1.0)
+
+
+@partial(jax.jit, static_argnames=("spec", "steps"))
+def _policy_epochs(params, m, v, t, x, u, adv, mask, logp_old, lr, clip, spec, steps):
+    names = [k for k in params if not k.startswith(policy.VALUE_PREFIX)]
+    sub = lambda d: {k: d[k] for k in names}  # noqa: E731
+
+    def step(i, carry):
+        p, m_, v_ = carry
+        g = jax.grad(lambda q: clipped_objective(params | q, x, u, adv, mask, logp_old, clip, spec))(p)
+        return _adam_ascent(p, m_, v_, g, t + 1.0 + i, lr)
+
+    return jax.lax.fori_loop(0, steps, step, (sub(params), sub(m), sub(v)))
+
+
+@partial(jax.jit, static_argnames=("spec",))
+def _log_prob(params, x, u, spec):
+    return policy.log_prob_unit(params, x, u, spec, xp=jnp, gammaln=gammaln)
+
+
+def log_prob(params: dict, x, u, spec: policy.PolicySpec) -> np.ndarray:
+    """``log pi(u | x)`` ``[B, T]`` of a padded batch (what :func:`policy_epochs` holds as the
+    behaviour policy's), computed as the jitted objectives compute it."""
+    return np.asarray(jax.device_get(_log_prob(params, x, u, spec)))
+
+
+def policy_epochs(params: dict, opt: OptState, x, u, adv, mask, logp_old, lr: float, clip: float,
+                  steps: int, spec: policy.PolicySpec):
+    """``steps`` more Adam steps of the policy alone (not the value network) on a batch it has just
+    stepped on, up PPO's clipped surrogate (:func:`clipped_objective`) against the policy that drew
+    the batch (``logp_old``): more passes over each batch, with the ratio clipped so that the
+    policy does not move far from the one whose episodes they are. The step count advances by
+    ``steps``; the value network's arrays and moments are left as they are."""
+    if steps < 1:
+        return params, opt
+    if opt.t < 1:
+        raise ValueError("policy_epochs follows an update: the step count must be at least 1")
+    cut = _cut(mask)
+    p, m, v = jax.device_get(_policy_epochs(params, opt.m, opt.v, opt.t, x[:, :cut], u[:, :cut],
+                                            adv[:, :cut], mask[:, :cut], logp_old[:, :cut],
+                                            float(lr), float(clip), spec, int(steps)))
+    return (params | _as_numpy(p), OptState(opt.m | _as_numpy(m), opt.v | _as_numpy(v), opt.t + steps))
 
 
 def update(params: dict, opt: OptState, x, u, adv, mask, lr: float, optimizer: str,
