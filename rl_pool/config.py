@@ -63,8 +63,9 @@ class PoolConfig:
     policy_epochs: int = opt(1, "Adam steps the policy takes on each batch: the REINFORCE step, then K - 1 "
                                 "more up PPO's clipped surrogate against the policy that drew the batch "
                                 "(1: REINFORCE alone)", added=True)
-    clip: float = opt(0.2, "with --policy-epochs above 1: how far the probability ratio of the extra steps "
-                           "may move from 1 before their gradient stops (PPO's epsilon)", added=True)
+    clip: float = opt(0.2, "with --policy-epochs above 1: a sampled action adds no more gradient to the extra "
+                           "steps once its probability ratio has moved past 1 +- C in the direction its "
+                           "advantage favours (PPO's epsilon)", added=True)
     gae_lambda: float = opt(1.0, "lambda of generalised advantage estimation, with the baseline as the value "
                                  "function (1: the return-to-go minus the baseline; below 1: less variance, "
                                  "some bias)", added=True)
@@ -268,6 +269,8 @@ class PoolConfig:
                 raise UsageError("--merge-momentum needs --merge momentum")
             if "rate_decay" in requested and not cfg.rate_patience:
                 raise UsageError("--rate-decay needs --rate-patience")
+            if "clip" in requested and cfg.policy_epochs < 2:
+                raise UsageError("--clip needs --policy-epochs above 1")
             return cfg
         for name, value in requested.items():
             have = getattr(saved, name)

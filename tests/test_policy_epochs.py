@@ -58,6 +58,8 @@ def test_the_clipped_surrogate_matches_a_step_by_step_loop():
     logp_old = learner.log_prob(other, x, u, SPEC)  # ratios far from 1: both sides of the clip
     r = np.exp(learner.log_prob(params, x, u, SPEC) - logp_old)[mask > 0]
     assert (r > 1.2).any() and (r < 0.8).any() and ((r > 0.8) & (r < 1.2)).any()
+    a = adv[mask > 0]
+    assert ((r > 1.2) & (a > 0)).any() and ((r < 0.8) & (a < 0)).any()  # where the clip changes the min
     got = float(learner.clipped_objective(params, x, u, adv, mask, logp_old, 0.2, SPEC))
     assert got == pytest.approx(_surrogate_by_loop(params, x, u, adv, mask, logp_old, 0.2), rel=1e-12)
 
@@ -102,6 +104,7 @@ def test_policy_epochs_are_adam_steps_of_the_policy_alone_written_out():
             p[k] = p[k] + 0.01 * (m[k] / (1 - 0.9**t)) / (np.sqrt(v[k] / (1 - 0.999**t)) + learner.ADAM_EPS)
     for k in params:
         np.testing.assert_allclose(p1[k], p[k], rtol=1e-10, atol=1e-14, err_msg=k)
+        np.testing.assert_allclose(opt1.m[k], m[k], rtol=1e-10, atol=1e-16, err_msg=k)
         np.testing.assert_allclose(opt1.v[k], v[k], rtol=1e-10, atol=1e-16, err_msg=k)
         if k.startswith("v_"):  # the value network and its moments stay where they were
             assert np.array_equal(p1[k], params[k]) and np.array_equal(opt1.m[k], opt.m[k])
@@ -120,6 +123,7 @@ def test_policy_epochs_skip_the_padding_after_the_longest_episode(monkeypatch):
     opt = learner.OptState({k: np.zeros_like(v) for k, v in params.items()},
                            {k: np.zeros_like(v) for k, v in params.items()}, 1.0)
     logp_old = learner.log_prob(params, x, u, SPEC)
+    assert learner._cut(mask) == 200
     cut, _ = learner.policy_epochs(params, opt, x, u, adv, mask, logp_old, 0.01, 0.2, 2, SPEC)  # 200 steps
     monkeypatch.setattr(learner, "FIT_BUCKET", 10**6)
     whole, _ = learner.policy_epochs(params, opt, x, u, adv, mask, logp_old, 0.01, 0.2, 2, SPEC)
@@ -138,6 +142,9 @@ def test_options_are_checked_and_older_pools_read_as_reinforce_alone():
                      ({"policy_epochs": 3, "optimizer": "normalized"}, "--policy-epochs")):
         with pytest.raises(UsageError, match=word):
             PoolConfig(**kw).validate()
+    with pytest.raises(UsageError, match="--clip needs --policy-epochs above 1"):
+        PoolConfig.merged({"clip": 0.1}, None)
+    assert PoolConfig.merged({"clip": 0.1, "policy_epochs": 2}, None).clip == 0.1
 
 
 def test_a_member_with_policy_epochs_moves_further_and_replays_exactly():
@@ -157,6 +164,30 @@ def test_a_member_with_policy_epochs_moves_further_and_replays_exactly():
     assert (one.opt_t, more.opt_t) == (1.0, 4.0)
 
 
+def test_the_member_hands_the_drawing_policy_its_clip_and_k_minus_1_steps(monkeypatch):
+    """The extra steps get the log-probabilities of the policy *before* the batch's REINFORCE step,
+    the pool's clip and K - 1, and come after that step; with a value network too."""
+    cfg = PoolConfig(max_episode_steps=60, train_episodes=4, batch_episodes=2, policy="mlp", hidden="4",
+                     baseline="value", value_hidden="4", gamma=0.9, policy_epochs=3, clip=0.15).validate()
+    env_list = [envs.make(cfg.env, {"max_episode_steps": 60})[0] for _ in range(2)]
+    meta = AgentMeta("Swimmer-v5", {}, 60, 8, 2, (-1.0, -1.0), (1.0, 1.0), cfg.spec)
+    start = Agent.initial(meta, seed=0)
+    calls, real = [], learner.policy_epochs
+
+    def spy(params, opt, x, u, adv, mask, logp_old, lr, clip, steps, spec):
+        calls.append((params, opt.t, x, u, logp_old, lr, clip, steps))
+        return real(params, opt, x, u, adv, mask, logp_old, lr, clip, steps, spec)
+
+    monkeypatch.setattr(learner, "policy_epochs", spy)
+    first = start.params
+    out = trainer.train(start, env_list, cfg, 0.01, 0, 0).agent
+    assert len(calls) == 2 and [c[5:] for c in calls] == [(0.01, 0.15, 2)] * 2
+    params, t, x, u, logp_old, *_ = calls[0]
+    assert t == 1.0 and not np.array_equal(params["w1"], first["w1"])  # after the REINFORCE step
+    np.testing.assert_array_equal(logp_old, learner.log_prob(first, x, u, cfg.spec))  # before it
+    assert out.opt_t == 2 * 3 and "v_w0" in out.params
+
+
 def test_a_pool_with_policy_epochs_records_them_and_replays_byte_for_byte(tmp_path):
     runs = []
     for name in ("a", "b"):
@@ -165,5 +196,6 @@ def test_a_pool_with_policy_epochs_records_them_and_replays_byte_for_byte(tmp_pa
                 "--iterations", 2, "--quiet", check=0)
         runs.append(d)
     a, b = runs
-    assert json.loads((a / "pool.json").read_text())["policy_epochs"] == 3
+    made = json.loads((a / "pool.json").read_text())
+    assert (made["policy_epochs"], made["clip"]) == (3, 0.1)
     assert (a / "best.npz").read_bytes() == (b / "best.npz").read_bytes()

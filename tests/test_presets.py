@@ -183,6 +183,17 @@ def test_hoppers_sharpening_at_reverts_leaves_when_there_are_no_reverts_or_no_ex
         _launch_config("hopper", tmp_path, "--revert-after", "0", "--revert-sharpen", "2")
 
 
+def test_ants_extra_passes_leave_with_another_step_rule(tmp_path):
+    """``--preset ant`` takes 10 passes over each batch, which need Adam: with ``--optimizer
+    normalized`` the pool is made without them (not refused for an option the user never gave);
+    given explicitly, they are refused."""
+    assert _launch_config("ant", tmp_path)[1].policy_epochs == 10
+    cfg = _launch_config("ant", tmp_path, "--optimizer", "normalized")[1]
+    assert (cfg.optimizer, cfg.policy_epochs) == ("normalized", 1)
+    with pytest.raises(UsageError, match="--policy-epochs above 1 needs --optimizer adam"):
+        _launch_config("ant", tmp_path, "--optimizer", "normalized", "--policy-epochs", "3")
+
+
 @pytest.mark.parametrize(("extra", "sharpen"), [
     ((), 1.0), (("--pool-size", "8"), 3.0), (("--pool-size", "16"), 3.0),
     (("--pool-size", "8", "--merge", "none"), 1.0),  # a pool that never merges has no reverts either

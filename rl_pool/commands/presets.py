@@ -117,11 +117,15 @@ def needless(preset: dict, value) -> set[str]:
     """The preset's options that the pool's other settings (``value(name)``: the final value of an
     option) leave nothing to do, and that the pool's checks would refuse for it: sharpening at
     reverts (``revert_sharpen``, or ``merged_revert_sharpen`` in pools that merge) without
-    reverts or without the ``exp`` link."""
+    reverts or without the ``exp`` link, and extra passes over each batch (``policy_epochs``)
+    with a step rule other than Adam."""
+    out = set()
     sharpens = "revert_sharpen" in preset or "merged_revert_sharpen" in preset
     if sharpens and (not value("revert_after") or value("link") != "exp"):
-        return {"revert_sharpen"}
-    return set()
+        out.add("revert_sharpen")
+    if "policy_epochs" in preset and value("optimizer") != "adam":
+        out.add("policy_epochs")
+    return out
 
 
 def member_learning_rate(preset: dict, member: int, pool_size: int) -> float | None:
