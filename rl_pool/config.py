@@ -159,10 +159,9 @@ class PoolConfig:
                      "policy_epochs"):
             if getattr(self, name) < 1:
                 raise UsageError(f"--{name.replace('_', '-')} must be a positive integer, got {getattr(self, name)}")
-        if self.value_epochs > 1000:
-            raise UsageError(f"--value-epochs must be at most 1000, got {self.value_epochs}")
-        if self.policy_epochs > 1000:
-            raise UsageError(f"--policy-epochs must be at most 1000, got {self.policy_epochs}")
+        for name in ("value_epochs", "policy_epochs"):
+            if getattr(self, name) > 1000:
+                raise UsageError(f"--{name.replace('_', '-')} must be at most 1000, got {getattr(self, name)}")
         if not (math.isfinite(self.clip) and 0.0 < self.clip <= 10.0):
             raise UsageError(f"--clip must be in (0, 10], got {self.clip}")
         if self.policy_epochs > 1 and self.optimizer != "adam":

@@ -145,17 +145,24 @@ def _cut(mask) -> int:
     return min(mask.shape[1], -(-longest // FIT_BUCKET) * FIT_BUCKET)
 
 
+def _ascend(params, m, v, names, objective, lr, steps, count):
+    """``steps`` Adam steps up ``objective(params | q)`` of the arrays ``names`` alone (the others
+    held); ``count(i)``: the step count that bias-corrects step ``i``. Inside a jitted function."""
+    sub = lambda d: {k: d[k] for k in names}  # noqa: E731
+
+    def step(i, carry):
+        g = jax.grad(lambda q: objective(params | q))(carry[0])
+        return _adam_ascent(*carry, g, count(i), lr)
+
+    return jax.lax.fori_loop(0, steps, step, (sub(params), sub(m), sub(v)))
+
+
 @partial(jax.jit, static_argnames=("spec", "steps", "limit"))
 def _fit_value(params, m, v, t, x, targets, mask, lr, spec, steps, limit):
     names = [k for k in params if k.startswith(policy.VALUE_PREFIX)]
-
-    def step(_, carry):
-        # up the gradient of -loss, as the objective's step: the moments keep one sign convention
-        g = jax.grad(lambda q: -value_loss(params | q, x, targets, mask, spec, limit))(carry[0])
-        return _adam_ascent(*carry, g, t, lr)
-
-    sub = lambda d: {k: d[k] for k in names}  # noqa: E731
-    return jax.lax.fori_loop(0, steps, step, (sub(params), sub(m), sub(v)))
+    # up the gradient of -loss, as the objective's step: the moments keep one sign convention
+    return _ascend(params, m, v, names, lambda p: -value_loss(p, x, targets, mask, spec, limit), lr, steps,
+                   lambda i: t)
 
 
 def fit_value(params: dict, opt: OptState, x, targets, mask, lr: float, steps: int,
@@ -187,14 +194,8 @@ def clipped_objective(params, x, u, adv, mask, logp_old, clip, spec: policy.Poli
 @partial(jax.jit, static_argnames=("spec", "steps"))
 def _policy_epochs(params, m, v, t, x, u, adv, mask, logp_old, lr, clip, spec, steps):
     names = [k for k in params if not k.startswith(policy.VALUE_PREFIX)]
-    sub = lambda d: {k: d[k] for k in names}  # noqa: E731
-
-    def step(i, carry):
-        p, m_, v_ = carry
-        g = jax.grad(lambda q: clipped_objective(params | q, x, u, adv, mask, logp_old, clip, spec))(p)
-        return _adam_ascent(p, m_, v_, g, t + 1.0 + i, lr)
-
-    return jax.lax.fori_loop(0, steps, step, (sub(params), sub(m), sub(v)))
+    return _ascend(params, m, v, names, lambda p: clipped_objective(p, x, u, adv, mask, logp_old, clip, spec),
+                   lr, steps, lambda i: t + 1.0 + i)
 
 
 @partial(jax.jit, static_argnames=("spec",))
