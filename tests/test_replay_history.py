@@ -14,6 +14,7 @@ import json
 import os
 import shutil
 
+import numpy as np
 import pytest
 
 from rl_pool.learning import envs, trainer
@@ -59,8 +60,15 @@ def test_every_selection_decides_again_bit_for_bit(old_pool):
 
 
 @pytest.mark.skipif(any(versions().get(k) != v for k, v in MADE_WITH.items()),
-                    reason=f"deposits replay exactly only with {MADE_WITH}")
-def test_every_deposit_trains_again_bit_for_bit(old_pool):
+                    reason=f"deposits replay only with {MADE_WITH}")
+def test_every_deposit_trains_again(old_pool):
+    """Every member's training and evaluation of the old pool, done again from the agent it started
+    from: bit for bit on a machine that rounds as the maker's did. XLA compiles the gradient for
+    the host's CPU model, and on another (an AMD EPYC with AVX-512, with the portable SIMD level on)
+    its last bits differ: there every trained array (parameters and Adam's moments) agrees with the
+    deposited one within 1e-9 of its size and every evaluation return within 1e-9 relative, which a
+    change in what a member computes would break. (Exact replay on one machine, kills included, is
+    the multi-process tests'.)"""
     paths, cfg = old_pool
     kwargs = dict(cfg.env_kwargs, max_episode_steps=cfg.max_episode_steps)
     env_list = [envs.make(cfg.env, kwargs)[0] for _ in range(max(cfg.batch_episodes, cfg.eval_episodes))]
@@ -69,6 +77,17 @@ def test_every_deposit_trains_again_bit_for_bit(old_pool):
         for m in range(cfg.pool_size):
             doc = paths.read_json(paths.deposit_json(i, m))
             tr = trainer.train(start, env_list, cfg, doc["learning_rate"], m, i)
-            assert layout.sha256(tr.agent.to_bytes()) == doc["agent_sha256"], f"iteration {i}, member {m}"
             ev = trainer.evaluate(tr.agent, env_list, cfg, i)
-            assert ev.returns == doc["eval_returns"]
+            if layout.sha256(tr.agent.to_bytes()) == doc["agent_sha256"]:
+                assert ev.returns == doc["eval_returns"], f"iteration {i}, member {m}"
+                continue
+            made = deposits.read_agent(paths, i, m, doc, like=start)
+            for tree in ("params", "opt_m", "opt_v"):
+                again, then = getattr(tr.agent, tree), getattr(made, tree)
+                assert sorted(again) == sorted(then)
+                for k in then:
+                    scale = float(np.max(np.abs(then[k]))) or 1.0
+                    np.testing.assert_allclose(np.asarray(again[k]), then[k], rtol=0, atol=1e-9 * scale,
+                                               err_msg=f"iteration {i}, member {m}, {tree}.{k}")
+            np.testing.assert_allclose(ev.returns, doc["eval_returns"], rtol=1e-9, atol=0,
+                                       err_msg=f"iteration {i}, member {m}")
