@@ -1,6 +1,7 @@
 """A pool made by an earlier rl-pool (before merges; picking one branch was the only rule) is
-replayed with today's code: every deposit trained again and every selection decided again must
-come out bit for bit as that version wrote them.
+replayed with today's code: every selection decided again must come out bit for bit as that
+version wrote it, and every deposit trained again as it did, to the bit on a machine that compiles
+the gradient alike (:func:`test_every_deposit_trains_again`).
 
 ``tests/data/pool-before-merge`` holds that pool: Swimmer-v5, 3 members at rates 0.01, 0.1, 0.1,
 5 iterations of 4 training episodes of 100 steps, 3 evaluation episodes, made by
