@@ -265,6 +265,33 @@ def test_a_launch_ends_with_a_pick_of_the_pool_it_ran(tmp_path):
     assert pick.episode_steps(layout.Paths(str(d))) == pick.DEFAULT_EPISODES * 60
 
 
+def test_a_launch_can_end_with_a_pick_that_has_a_final_round(tmp_path):
+    d = tmp_path / "final-round"
+    proc = rl_pool("launch", "--pool-dir", d, "--pool-size", 2, "--learning-rates", "0.03,0.3", "--iterations", 3,
+                   "--selection", "branches", *SHORT, "--pick", "--pick-finalists", 2, "--pick-final-episodes", 3,
+                   "--quiet", check=0)
+    res = json.loads((d / "picked.json").read_bytes())
+    assert (res["finalists"], res["final_episodes"]) == (2, 3) and "2 of them played on" in proc.stdout
+    assert sum(bool(c.get("finalist")) for c in res["candidates"]) == 2
+    assert res["picked"]["episodes"] == pick.DEFAULT_EPISODES + 3
+    # the pick `rl-pool pick POOL --finalists 2 --final-episodes 3` makes
+    again = json.loads(rl_pool("pick", d, "--finalists", 2, "--final-episodes", 3, "--out", tmp_path / "again.npz",
+                               "--json", check=0).stdout)
+    assert again["picked"]["agent_sha256"] == res["picked"]["agent_sha256"] == _sha(d / "picked.npz")
+
+
+@pytest.mark.parametrize("args, message", [
+    (["--pick-finalists", "2"], "--pick-finalists sets the final round of a pick: add --pick"),
+    (["--pick-final-episodes", "5"], "--pick-final-episodes sets the final round of a pick: add --pick"),
+    (["--pick", "--pick-finalists", "-1"], "--pick-finalists must be >= 0"),
+    (["--pick", "--pick-finalists", "2", "--pick-final-episodes", "0"], "--pick-final-episodes 1 to 999980"),
+])
+def test_a_launchs_final_round_without_sense_gets_one_line(tmp_path, args, message):
+    proc = rl_pool("launch", "--pool-dir", tmp_path / "p", "--iterations", 1, *SHORT, *args, check=2)
+    assert proc.stderr.count("\n") == 1 and message in proc.stderr and "Traceback" not in proc.stderr
+    assert not (tmp_path / "p").exists()  # refused before any pool or member
+
+
 def test_a_launch_with_a_budget_stops_in_time_for_its_pick_and_a_launch_resumes(tmp_path):
     d = tmp_path / "budget"
     budget = 0.6  # minutes: the pick of 21 x 20 short episodes keeps 10-20 s of it
@@ -303,3 +330,8 @@ def test_the_budget_keeps_time_for_the_pick_by_the_pools_pace_and_its_candidates
     assert with_pick.reserve(50_000, 3) == pytest.approx(PICK_OVERHEAD + PICK_MARGIN * 4 * hc / 50_000)
     # before the pool has a pace, a slow one is assumed
     assert with_pick.reserve(None, 0) == pytest.approx(PICK_OVERHEAD + PICK_MARGIN * hc / SLOW_PACE)
+    # a final round: its finalists' episodes too, as many finalists as there are candidates at most
+    final = 100 * 1000
+    with_final = Budget(1.0, hc, now=100.0, finalists=6, final_steps=final)
+    assert with_final.reserve(50_000, 300) == pytest.approx(keep + PICK_MARGIN * 6 * final / 50_000)
+    assert with_final.reserve(50_000, 3) == pytest.approx(PICK_OVERHEAD + PICK_MARGIN * 4 * (hc + final) / 50_000)

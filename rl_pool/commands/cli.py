@@ -152,7 +152,26 @@ def cmd_launch(args) -> int:
     requested = _explicit(args, PoolConfig)
     member_opts = _explicit(args, MemberConfig, skip=("member", "learning_rate"))
     return launch.launch(args.pool_dir, requested, member_opts, lrs, args.learning_rate, quiet=args.quiet,
-                         interval=args.interval, minutes=args.minutes, pick=bool(args.pick))
+                         interval=args.interval, minutes=args.minutes, pick=bool(args.pick),
+                         **_pick_round(args))
+
+
+def _pick_round(args) -> dict:
+    """The launch's final round of its pick: the preset's or the user's ``--pick-finalists`` and
+    ``--pick-final-episodes``. Given without a pick, they would do nothing: refused (a preset's are
+    left out with its pick)."""
+    from rl_pool.commands import pick
+    from rl_pool.errors import UsageError
+
+    given = [name for name in ("pick_finalists", "pick_final_episodes")
+             if getattr(args, name) is not None and name not in getattr(args, "preset_set", ())]
+    if given and not args.pick:
+        raise UsageError(f"--{given[0].replace('_', '-')} sets the final round of a pick: add --pick")
+    if not args.pick:
+        return {}
+    finalists = args.pick_finalists if args.pick_finalists is not None else 0
+    final = args.pick_final_episodes if args.pick_final_episodes is not None else pick.DEFAULT_FINAL_EPISODES
+    return {"pick_finalists": finalists, "pick_final_episodes": final}
 
 
 def cmd_status(args) -> int:
@@ -266,6 +285,13 @@ def build_parser() -> argparse.ArgumentParser:
     la.add_argument("--pick", action=argparse.BooleanOptionalAction, default=None,
                     help="end the run with rl-pool pick (its defaults; POOL/picked.npz), within --minutes "
                          "(default: no, or the preset's choice)")
+    la.add_argument("--pick-finalists", type=int, default=None, metavar="K",
+                    help="with --pick: its K best candidates play --pick-final-episodes more, and the pick is "
+                         "the finalist with the highest mean over all its episodes (rl-pool pick --finalists; "
+                         "default 0, or the preset's)")
+    la.add_argument("--pick-final-episodes", type=int, default=None, metavar="E",
+                    help="with --pick-finalists: the final round's held-out episodes (default 100, or the "
+                         "preset's)")
     _add_dataclass_options(la, PoolConfig)
     _add_dataclass_options(la, MemberConfig, skip=("member",))
     la.set_defaults(func=cmd_launch)

@@ -83,16 +83,21 @@ def _args(opts: dict) -> list[str]:
 
 def launch(pool_dir: str, requested: dict, member_opts: dict, learning_rates: list[float] | None,
            base_lr: float | None, quiet: bool = False, interval: float = 10.0, minutes: float | None = None,
-           pick: bool = False) -> int:
+           pick: bool = False, pick_finalists: int = 0,
+           pick_final_episodes: int = picking.DEFAULT_FINAL_EPISODES) -> int:
     """Start the members, show progress until they exit; 0, 1 if a member failed (or the pick found
     no agent), 130 if stopped (Ctrl-C, a signal; also during the pick).
 
     ``interval``: seconds between plain progress lines when stdout is not a terminal.
     ``minutes``: stop the members after this much wall-clock time (not a failure); ``pick``: then,
-    or when they are done, pick the pool's agent on held-out episodes (within ``minutes``).
+    or when they are done, pick the pool's agent on held-out episodes (within ``minutes``), with a
+    final round for its ``pick_finalists`` best candidates on ``pick_final_episodes`` more.
     """
     from rl_pool.commands.member import check_arguments, make_initial
 
+    if pick_finalists < 0 or not 1 <= pick_final_episodes <= picking.MAX_EPISODES - picking.DEFAULT_EPISODES:
+        raise UsageError(f"--pick-finalists must be >= 0 and --pick-final-episodes 1 to "
+                         f"{picking.MAX_EPISODES - picking.DEFAULT_EPISODES}")
     paths = layout.Paths(pool_dir)
     n = check_arguments(paths, requested, []).pool_size
     base = base_lr if base_lr is not None else MemberConfig.learning_rate
@@ -109,7 +114,8 @@ def launch(pool_dir: str, requested: dict, member_opts: dict, learning_rates: li
 
     procs = []
     started = time.time()
-    budget = Budget(minutes, picking.episode_steps(paths) if pick else None)
+    budget = Budget(minutes, picking.episode_steps(paths) if pick else None,
+                    finalists=pick_finalists, final_steps=picking.episode_steps(paths, pick_final_episodes))
     target = member_opts.get("iterations", MemberConfig.iterations)
     env = capped_environ()
     interrupted = False
@@ -150,7 +156,7 @@ def launch(pool_dir: str, requested: dict, member_opts: dict, learning_rates: li
         if not pick:
             return 0
         _interrupt.check()  # a stop that a finaliser swallowed while the members were stopping
-        return _pick(paths, n)
+        return _pick(paths, n, pick_finalists, pick_final_episodes)
     except KeyboardInterrupt:
         _say("stopped; the pool is intact" + (" (rl-pool pick POOL picks its agent)" if pick else ""), sys.stderr)
         return 130
@@ -164,16 +170,19 @@ def launch(pool_dir: str, requested: dict, member_opts: dict, learning_rates: li
 STOPPED = (128 + signal.SIGTERM, -signal.SIGTERM, -signal.SIGKILL)
 
 
-def _pick(paths: layout.Paths, n: int) -> int:
-    """The run's last step: ``rl-pool pick`` with its defaults, on as many workers as members (or cores)."""
+def _pick(paths: layout.Paths, n: int, finalists: int, final_episodes: int) -> int:
+    """The run's last step: ``rl-pool pick`` with its defaults but the final round's, on as many
+    workers as members (or cores)."""
     try:
-        res = picking.pick(paths.root, workers=max(1, min(n, os.cpu_count() or 1)))
+        res = picking.pick(paths.root, workers=max(1, min(n, os.cpu_count() or 1)), finalists=finalists,
+                           final_episodes=final_episodes)
     except UsageError as exc:
         _say(f"no pick: {exc}", sys.stderr)
         return 1
     p = res["picked"]
+    final = f", {res['finalists']} of them played on" if res["finalists"] else ""
     _say(f"picked the agent of iteration {p['iteration']} on {p['episodes']} held-out episodes: mean "
-         f"{p['mean_return']:.2f} ± {p['std_return']:.2f} ({len(res['candidates'])} candidates, "
+         f"{p['mean_return']:.2f} ± {p['std_return']:.2f} ({len(res['candidates'])} candidates{final}, "
          f"{res['seconds']:.0f} s), written to {res['out']}")
     return 0
 
@@ -189,22 +198,28 @@ SLOW_PACE = 5000.0
 class Budget:
     """When a launch with ``minutes`` stops its members: at the end of the budget, or, with a
     pick to come, early enough for it by the pool's pace. ``pick_steps``: the env steps of one
-    candidate's held-out episodes at most (:func:`rl_pool.commands.pick.episode_steps`)."""
+    candidate's held-out episodes at most (:func:`rl_pool.commands.pick.episode_steps`);
+    ``finalists`` of the candidates then play ``final_steps`` more each (a final round)."""
 
-    def __init__(self, minutes: float | None, pick_steps: float | None = None, now: float | None = None):
+    def __init__(self, minutes: float | None, pick_steps: float | None = None, now: float | None = None,
+                 finalists: int = 0, final_steps: float = 0.0):
         start = time.monotonic() if now is None else now
         self.end = None if minutes is None else start + 60.0 * minutes
         self.pick_steps = pick_steps
+        self.finalists = finalists
+        self.final_steps = final_steps
         self.stopped = False
 
     def reserve(self, steps_per_second: float | None, iterations: int) -> float:
         """Seconds kept for the pick after ``iterations`` selections (one new agent each at most,
-        so that many candidates and the initial agent); before the pool has a pace, a slow one's."""
+        so that many candidates and the initial agent, and as many finalists at most); before the
+        pool has a pace, a slow one's."""
         if not self.pick_steps:
             return 0.0
         rate = steps_per_second if steps_per_second and math.isfinite(steps_per_second) else SLOW_PACE
         candidates = min(picking.DEFAULT_TOP, max(iterations, 0)) + 1
-        return PICK_OVERHEAD + PICK_MARGIN * candidates * self.pick_steps / max(rate, 1.0)
+        steps = candidates * self.pick_steps + min(self.finalists, candidates) * self.final_steps
+        return PICK_OVERHEAD + PICK_MARGIN * steps / max(rate, 1.0)
 
     def due(self, steps_per_second: float | None, iterations: int, now: float | None = None) -> bool:
         if self.end is None:

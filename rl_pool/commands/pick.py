@@ -43,6 +43,8 @@ DEFAULT_SEED = 2_000_000
 #: Candidates (besides the last selected agent) and held-out episodes of a pick by default.
 DEFAULT_TOP = 20
 DEFAULT_EPISODES = 20
+#: Held-out episodes of a final round (``--finalists``), after the first round's.
+DEFAULT_FINAL_EPISODES = 100
 
 
 def candidates(paths: layout.Paths, top: int) -> tuple[list[dict], int]:
@@ -81,11 +83,11 @@ def _pool_agent_meta(paths: layout.Paths):
         return None
 
 
-def episode_steps(paths: layout.Paths) -> int:
-    """The env steps one candidate's held-out episodes of a default pick take at most: each as
-    long as the pool's episodes (1000 where the pool has no initial agent to say)."""
+def episode_steps(paths: layout.Paths, episodes: int = DEFAULT_EPISODES) -> int:
+    """The env steps of ``episodes`` held-out episodes at most (one candidate's in a default pick):
+    each as long as the pool's episodes (1000 where the pool has no initial agent to say)."""
     meta = _pool_agent_meta(paths)
-    return DEFAULT_EPISODES * max(1, meta.max_episode_steps if meta is not None else 1000)
+    return episodes * max(1, meta.max_episode_steps if meta is not None else 1000)
 
 
 def current_pick(paths: layout.Paths) -> tuple[str, bytes] | None:
@@ -157,7 +159,7 @@ def _why_not_playable(data: bytes, digest: str, source: str, cfg, like=None) -> 
 
 def pick(pool_dir: str, top: int = DEFAULT_TOP, episodes: int = DEFAULT_EPISODES, seed: int = DEFAULT_SEED,
          workers: int = 1, mode: str = "mean", out: str | None = None, finalists: int = 0,
-         final_episodes: int = 100) -> dict:
+         final_episodes: int = DEFAULT_FINAL_EPISODES) -> dict:
     """Run the candidates on ``episodes`` held-out episodes; with ``finalists`` K, the K best of them
     on ``final_episodes`` more, and pick the finalist with the highest mean over all its episodes."""
     if top < 0 or episodes < 1 or workers < 1 or finalists < 0 or final_episodes < 1:

@@ -7,7 +7,8 @@ one rate per member (``launch``; ``train --member I`` takes the I-th) and
 ``--merge`` rule (:func:`merge`), and when that rule merges with the rule of three
 ``merged_batch_episodes`` replaces ``batch_episodes`` (:func:`batch_episodes`) and the other
 ``merged_<option>`` keys set ``<option>`` (:func:`merged_options`), in place of the preset's
-own ``<option>`` where it has one. ``pick`` makes ``launch`` end with a pick (``--pick``).
+own ``<option>`` where it has one. ``pick`` makes ``launch`` end with a pick (``--pick``), and
+``pick_finalists`` and ``pick_final_episodes`` give that pick a final round.
 """
 
 from __future__ import annotations
@@ -54,7 +55,7 @@ PRESETS: dict[str, dict] = {
 
 
 #: Preset keys that are ``launch`` options, not pool or member settings.
-LAUNCH_ONLY = ("pick",)
+LAUNCH_ONLY = ("pick", "pick_finalists", "pick_final_episodes")
 
 
 def get(name: str) -> dict:
