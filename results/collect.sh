@@ -4,6 +4,7 @@
 # of best.npz and of picked.npz (`rl-pool pick`: the top 20 selected agents and the last one on 20
 # held-out episodes, seeds 2000000+k; then re-scored on the same 50 episodes as best.npz).
 #   results/collect.sh POOL_DIR TASK "the command that made the pool"
+#   PICK_OPTS="--finalists 6"   further `rl-pool pick` options (a preset's final round)
 set -euo pipefail
 POOL="$1"; TASK="$2"; CMD="$3"
 HERE="$(cd "$(dirname "$0")/.." && pwd)"
@@ -15,7 +16,8 @@ mkdir -p "$OUT"
 cp "$POOL/best.npz" "$OUT/best.npz"
 cp "$POOL/best.json" "$POOL/pool.json" "$OUT/"
 "$RL" evaluate "$OUT/best.npz" --episodes 50 --workers 2 --json > "$OUT/rescore.json"
-"$RL" pick "$POOL" --top 20 --episodes 20 --workers 2 --out "$OUT/picked.npz" > /dev/null
+# shellcheck disable=SC2086  # PICK_OPTS is a list of options
+"$RL" pick "$POOL" --top 20 --episodes 20 ${PICK_OPTS:-} --workers 2 --out "$OUT/picked.npz" > /dev/null
 "$RL" evaluate "$OUT/picked.npz" --episodes 50 --workers 2 --json > "$OUT/rescore-picked.json"
 "$HERE/.venv/bin/python" - "$OUT" <<'PY' > "$OUT/versions.txt"
 import platform, sys
@@ -68,7 +70,10 @@ lines = [f"# {pool['env']}: {task}", "",
          f"(min {f(min(res['returns']))}, max {f(max(res['returns']))}).", "",
          f"`picked.npz` (`rl-pool pick --top 20 --episodes 20`: {len(picked['candidates'])} of the "
          f"{picked['distinct_agents']} distinct selected agents on the same 20 held-out episodes, reset seeds "
-         f"{picked['seed']}+k) is the agent of iteration {picked['picked']['iteration']} (held-out mean "
+         f"{picked['seed']}+k"
+         + (f"; its {picked['finalists']} best then played {picked['final_episodes']} more, `--finalists "
+            f"{picked['finalists']} --final-episodes {picked['final_episodes']}`" if picked.get("finalists") else "")
+         + f") is the agent of iteration {picked['picked']['iteration']} (held-out mean "
          f"{f(picked['picked']['mean_return'])}); re-scored on the same 50 fresh episodes: "
          f"**{f(res_p['mean_return'])} ± {f(res_p['std_return'])}** (min {f(min(res_p['returns']))}, "
          f"max {f(max(res_p['returns']))}).", "",

@@ -11,7 +11,7 @@ from rl_pool.config import MemberConfig, PoolConfig
 from rl_pool.errors import UsageError
 
 POOL_FIELDS = {f.name for f in fields(PoolConfig)}
-KNOWN = POOL_FIELDS | {f.name for f in fields(MemberConfig)} | {"learning_rates", "pick"} | {
+KNOWN = POOL_FIELDS | {f.name for f in fields(MemberConfig)} | {"learning_rates", *presets.LAUNCH_ONLY} | {
     f"merged_{name}" for name in POOL_FIELDS}
 
 
@@ -99,6 +99,27 @@ def test_every_preset_is_in_the_docs_tables(doc):
     for name, preset in presets.PRESETS.items():
         assert name in rows, f"{doc} has no row for preset {name!r}"
         assert preset["env"] in rows[name], f"{doc}: the row of {name!r} does not name {preset['env']}"
+
+
+def test_a_preset_gives_its_pick_a_final_round_and_the_options_that_win(tmp_path):
+    def launch_pick(*argv):
+        args = cli.build_parser().parse_args(["launch", "--pool-dir", str(tmp_path), *argv])
+        cli._apply_preset(args)
+        return cli._pick_round(args)
+
+    idp = ("--preset", "inverted-double-pendulum")
+    assert launch_pick(*idp) == {"pick_finalists": 6, "pick_final_episodes": 100}
+    assert launch_pick(*idp, "--pick-finalists", "2", "--pick-final-episodes", "50") == {
+        "pick_finalists": 2, "pick_final_episodes": 50}
+    assert launch_pick(*idp, "--no-pick") == {}  # the preset's final round goes with its pick
+    assert launch_pick("--preset", "halfcheetah") == {"pick_finalists": 0, "pick_final_episodes": 100}
+    with pytest.raises(UsageError, match="--pick-finalists sets the final round of a pick: add --pick"):
+        launch_pick(*idp, "--no-pick", "--pick-finalists", "3")
+    # the preset's dict is the pool's, never shared with the parsed arguments
+    args = cli.build_parser().parse_args(["launch", "--pool-dir", str(tmp_path), *idp])
+    cli._apply_preset(args)
+    assert args.train_env_kwargs == {"reset_noise_scale": 0.13}
+    assert args.train_env_kwargs is not presets.PRESETS["inverted-double-pendulum"]["train_env_kwargs"]
 
 
 @pytest.mark.parametrize("extra, batch", [

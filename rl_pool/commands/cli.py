@@ -77,7 +77,7 @@ def _apply_preset(args) -> dict:
         if key in presets.LAUNCH_ONLY and not hasattr(args, key):
             continue  # `train` runs one member: what a launch does after its members is not its own
         if getattr(args, key, None) is None:
-            setattr(args, key, value)
+            setattr(args, key, dict(value) if isinstance(value, dict) else value)  # never the preset's own dict
     if own_batch and getattr(args, "batch_episodes", None) is None:
         args.batch_episodes = presets.batch_episodes(chosen, size, merge)
     selection = getattr(args, "selection", None) or merged.get("selection") or PoolConfig.selection
