@@ -27,7 +27,7 @@ for p in ("numpy", "jax", "jaxlib", "mujoco", "gymnasium", "rl-pool"):
     print(p, version(p))
 PY
 { echo "# $(date -u +%F): made on the 2-core development machine with the versions in versions.txt"; echo "$CMD";
-  echo "# exported with:"; echo "results/collect.sh $POOL $TASK '...'"; } > "$OUT/command.txt"
+  echo "# exported with:"; echo "${PICK_OPTS:+PICK_OPTS=\"$PICK_OPTS\" }results/collect.sh $POOL $TASK '...'"; } > "$OUT/command.txt"
 "$HERE/.venv/bin/python" - "$OUT" "$TASK" "$CMD" <<'PY'
 import csv, json, sys
 out, task, cmd = sys.argv[1:4]

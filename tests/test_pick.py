@@ -285,11 +285,23 @@ def test_a_launch_can_end_with_a_pick_that_has_a_final_round(tmp_path):
     (["--pick-final-episodes", "5"], "--pick-final-episodes sets the final round of a pick: add --pick"),
     (["--pick", "--pick-finalists", "-1"], "--pick-finalists must be >= 0"),
     (["--pick", "--pick-finalists", "2", "--pick-final-episodes", "0"], "--pick-final-episodes 1 to 999980"),
+    (["--pick", "--pick-final-episodes", "5"], "--pick-final-episodes sets the final round's episodes: add "
+                                              "--pick-finalists K"),
 ])
 def test_a_launchs_final_round_without_sense_gets_one_line(tmp_path, args, message):
     proc = rl_pool("launch", "--pool-dir", tmp_path / "p", "--iterations", 1, *SHORT, *args, check=2)
     assert proc.stderr.count("\n") == 1 and message in proc.stderr and "Traceback" not in proc.stderr
     assert not (tmp_path / "p").exists()  # refused before any pool or member
+
+
+def test_a_launchs_budget_keeps_time_for_the_pick_and_its_final_round_at_the_pools_episode_length(pool_dir):
+    from rl_pool.commands.launch import pick_budget
+
+    paths = layout.Paths(str(pool_dir))
+    b = pick_budget(paths, 1.0, True, 6, 100)
+    assert (b.pick_steps, b.finalists, b.final_steps) == (pick.DEFAULT_EPISODES * 60, 6, 100 * 60)
+    assert pick_budget(paths, 1.0, True, 0, 100).reserve(1e4, 50) < b.reserve(1e4, 50)
+    assert pick_budget(paths, 1.0, False, 6, 100).reserve(1e4, 50) == 0.0  # no pick: nothing kept
 
 
 def test_a_launch_with_a_budget_stops_in_time_for_its_pick_and_a_launch_resumes(tmp_path):

@@ -158,8 +158,8 @@ def cmd_launch(args) -> int:
 
 def _pick_round(args) -> dict:
     """The launch's final round of its pick: the preset's or the user's ``--pick-finalists`` and
-    ``--pick-final-episodes``. Given without a pick, they would do nothing: refused (a preset's are
-    left out with its pick)."""
+    ``--pick-final-episodes``. Given without a pick, or the episodes without finalists, they would
+    do nothing: refused (a preset's are left out with its pick)."""
     from rl_pool.commands import pick
     from rl_pool.errors import UsageError
 
@@ -171,6 +171,8 @@ def _pick_round(args) -> dict:
         return {}
     finalists = args.pick_finalists if args.pick_finalists is not None else 0
     final = args.pick_final_episodes if args.pick_final_episodes is not None else pick.DEFAULT_FINAL_EPISODES
+    if "pick_final_episodes" in given and not finalists:
+        raise UsageError("--pick-final-episodes sets the final round's episodes: add --pick-finalists K")
     return {"pick_finalists": finalists, "pick_final_episodes": final}
 
 

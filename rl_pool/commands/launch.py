@@ -114,8 +114,7 @@ def launch(pool_dir: str, requested: dict, member_opts: dict, learning_rates: li
 
     procs = []
     started = time.time()
-    budget = Budget(minutes, picking.episode_steps(paths) if pick else None,
-                    finalists=pick_finalists, final_steps=picking.episode_steps(paths, pick_final_episodes))
+    budget = pick_budget(paths, minutes, pick, pick_finalists, pick_final_episodes)
     target = member_opts.get("iterations", MemberConfig.iterations)
     env = capped_environ()
     interrupted = False
@@ -226,6 +225,15 @@ class Budget:
             return False
         now = time.monotonic() if now is None else now
         return now >= self.end - self.reserve(steps_per_second, iterations)
+
+
+def pick_budget(paths: layout.Paths, minutes: float | None, pick: bool, finalists: int,
+                final_episodes: int) -> Budget:
+    """The launch's budget, keeping time for its pick (and the pick's final round) where it has one."""
+    if not pick:
+        return Budget(minutes)
+    return Budget(minutes, picking.episode_steps(paths), finalists=finalists,
+                  final_steps=picking.episode_steps(paths, final_episodes))
 
 
 #: Only the first signal stops the pool: a second Ctrl-C, or the same signal sent to the whole
