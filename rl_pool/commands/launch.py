@@ -232,8 +232,9 @@ def pick_budget(paths: layout.Paths, minutes: float | None, pick: bool, finalist
     """The launch's budget, keeping time for its pick (and the pick's final round) where it has one."""
     if not pick:
         return Budget(minutes)
-    return Budget(minutes, picking.episode_steps(paths), finalists=finalists,
-                  final_steps=picking.episode_steps(paths, final_episodes))
+    per_episode = picking.episode_steps(paths, 1)  # one read of the pool's initial agent
+    return Budget(minutes, per_episode * picking.DEFAULT_EPISODES, finalists=finalists,
+                  final_steps=per_episode * final_episodes)
 
 
 #: Only the first signal stops the pool: a second Ctrl-C, or the same signal sent to the whole
