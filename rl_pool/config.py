@@ -66,6 +66,9 @@ class PoolConfig:
     clip: float = opt(0.2, "with --policy-epochs above 1: a sampled action adds no more gradient to the extra "
                            "steps once its probability ratio has moved past 1 +- C in the direction its "
                            "advantage favours (PPO's epsilon)", added=True)
+    minibatch_steps: int = opt(0, "with --policy-epochs above 1: each extra pass goes through the batch's steps "
+                                  "in a fresh random order, S at a time, one Adam step per minibatch (PPO's "
+                                  "minibatches; 0: one step on the whole batch per pass)", added=True)
     gae_lambda: float = opt(1.0, "lambda of generalised advantage estimation, with the baseline as the value "
                                  "function (1: the return-to-go minus the baseline; below 1: less variance, "
                                  "some bias)", added=True)
@@ -162,6 +165,8 @@ class PoolConfig:
         for name in ("value_epochs", "policy_epochs"):
             if getattr(self, name) > 1000:
                 raise UsageError(f"--{name.replace('_', '-')} must be at most 1000, got {getattr(self, name)}")
+        if not 0 <= self.minibatch_steps <= 10**6:
+            raise UsageError(f"--minibatch-steps must be in [0, 1000000], got {self.minibatch_steps}")
         if not (math.isfinite(self.clip) and 0.0 < self.clip <= 10.0):
             raise UsageError(f"--clip must be in (0, 10], got {self.clip}")
         if self.policy_epochs > 1 and self.optimizer != "adam":
@@ -270,6 +275,8 @@ class PoolConfig:
                 raise UsageError("--rate-decay needs --rate-patience")
             if "clip" in requested and cfg.policy_epochs < 2:
                 raise UsageError("--clip needs --policy-epochs above 1")
+            if requested.get("minibatch_steps") and cfg.policy_epochs < 2:
+                raise UsageError("--minibatch-steps needs --policy-epochs above 1")
             return cfg
         for name, value in requested.items():
             have = getattr(saved, name)

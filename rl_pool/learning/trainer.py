@@ -20,7 +20,7 @@ from rl_pool.maths import learner, normalizer, returns
 from rl_pool.maths.agent import Agent
 
 # Stream tags, so the same (seed, member, iteration) never feeds two purposes.
-_TRAIN_ENV, _TRAIN_ACT, _EVAL_ENV, _EVAL_ACT, _LR_ADAPT = 0, 1, 2, 3, 4
+_TRAIN_ENV, _TRAIN_ACT, _EVAL_ENV, _EVAL_ACT, _LR_ADAPT, _MINIBATCH = 0, 1, 2, 3, 4, 5
 LR_BOUNDS = (1e-5, 10.0)
 
 
@@ -104,6 +104,7 @@ def train(agent: Agent, envs, cfg: PoolConfig, lr: float, member: int, iteration
     T = agent.meta.max_episode_steps
     steps, ep_returns, gnorms = 0, [], []
     B = cfg.batch_episodes
+    shuffle = np.random.Generator(np.random.PCG64(_seq(cfg.seed, member, iteration, _MINIBATCH)))
     for k in range(cfg.updates_per_iteration):
         batch = run_episodes(envs, params, spec, norm, low, high, seeds[k * B:(k + 1) * B], T, rng,
                              deterministic=False)
@@ -119,7 +120,10 @@ def train(agent: Agent, envs, cfg: PoolConfig, lr: float, member: int, iteration
         logp_old = learner.log_prob(params, x, batch.u, spec) if cfg.policy_epochs > 1 else None
         params, opt, gnorm = learner.update(params, opt, x, batch.u, adv, batch.mask, lr,
                                             cfg.optimizer, spec, targets)
-        if cfg.policy_epochs > 1:
+        if cfg.policy_epochs > 1 and cfg.minibatch_steps:
+            params, opt = learner.policy_minibatches(params, opt, x, batch.u, adv, batch.mask, logp_old, lr, cfg.clip,
+                                                     cfg.policy_epochs - 1, cfg.minibatch_steps, shuffle, spec)
+        elif cfg.policy_epochs > 1:
             params, opt = learner.policy_epochs(params, opt, x, batch.u, adv, batch.mask, logp_old, lr,
                                                 cfg.clip, cfg.policy_epochs - 1, spec)
         if spec.value and cfg.value_epochs > 1:

@@ -198,6 +198,67 @@ def _policy_epochs(params, m, v, t, x, u, adv, mask, logp_old, lr, clip, spec, s
                    lr, steps, lambda i: t + 1.0 + i)
 
 
+def minibatch_plan(mask, size: int, passes: int, rng: np.random.Generator):
+    """Which steps each minibatch step of :func:`policy_minibatches` takes: ``(order, count)``.
+
+    Every pass draws a fresh permutation of the batch's valid steps (``mask`` ``[B, T]`` > 0, as flat
+    indices ``b * T + t``) and cuts it into ``ceil(n / size)`` minibatches; the last one of a pass is
+    filled up with ``B * T``, the index of a padding row. ``order`` has room for ``passes`` passes
+    over a batch of full episodes (``[passes * ceil(B * T / size), size]``, one shape per batch
+    layout, so the jitted loop compiles once); its first ``count`` rows are the steps to take."""
+    mask = np.asarray(mask)
+    flat = np.flatnonzero(mask.reshape(-1) > 0)
+    n, pad = flat.size, mask.size
+    per = -(-n // size)
+    order = np.full((passes * -(-pad // size), size), pad, dtype=np.int32)
+    for p in range(passes):
+        block = np.full(per * size, pad, dtype=np.int32)
+        block[:n] = flat[rng.permutation(n)]
+        order[p * per:(p + 1) * per] = block.reshape(per, size)
+    return order, passes * per
+
+
+@partial(jax.jit, static_argnames=("spec",))
+def _policy_minibatches(params, m, v, t, x, u, adv, mask, logp_old, order, count, lr, clip, spec):
+    names = [k for k in params if not k.startswith(policy.VALUE_PREFIX)]
+    sub = lambda d: {k: d[k] for k in names}  # noqa: E731
+
+    def step(i, carry):
+        idx = order[i]
+        g = jax.grad(lambda q: clipped_objective(params | q, x[idx], u[idx], adv[idx], mask[idx], logp_old[idx],
+                                                 clip, spec))(carry[0])
+        return _adam_ascent(*carry, g, t + 1.0 + i, lr)
+
+    return jax.lax.fori_loop(0, count, step, (sub(params), sub(m), sub(v)))
+
+
+def policy_minibatches(params: dict, opt: OptState, x, u, adv, mask, logp_old, lr: float, clip: float,
+                       passes: int, size: int, rng: np.random.Generator, spec: policy.PolicySpec):
+    """:func:`policy_epochs` in PPO's minibatches: ``passes`` more passes over a batch the policy has
+    just stepped on, each through its valid steps in a fresh random order (drawn from ``rng``),
+    ``size`` steps at a time, one Adam step of the policy alone up the clipped surrogate of each
+    minibatch. The step count advances by the number of minibatches; the value network's arrays and
+    moments are left as they are."""
+    if passes < 1:
+        return params, opt
+    if opt.t < 1:
+        raise ValueError("policy_minibatches follows an update: the step count must be at least 1")
+    if size < 1:
+        raise ValueError(f"a minibatch needs at least one step, got {size}")
+    order, count = minibatch_plan(mask, size, passes, rng)
+    if count == 0:
+        return params, opt
+    def flat(a):  # [B, T, ...] -> [B * T + 1, ...]: the steps, then one padding row (mask 0)
+        a = np.asarray(a)
+        rest = a.shape[2:]
+        return np.concatenate([a.reshape(mask.size, *rest), np.zeros((1, *rest), dtype=a.dtype)])
+
+    p, m, v = jax.device_get(_policy_minibatches(params, opt.m, opt.v, opt.t, flat(x), flat(u), flat(adv),
+                                                 flat(mask), flat(logp_old), order, count, float(lr),
+                                                 float(clip), spec))
+    return (params | _as_numpy(p), OptState(opt.m | _as_numpy(m), opt.v | _as_numpy(v), opt.t + count))
+
+
 @partial(jax.jit, static_argnames=("spec",))
 def _log_prob(params, x, u, spec):
     return policy.log_prob_unit(params, x, u, spec, xp=jnp, gammaln=gammaln)
