@@ -136,3 +136,37 @@ def test_ctrl_c_while_an_env_is_made_stops_instead_of_reporting_a_bad_environmen
         assert doc["state"] == "stopped" and "SIGINT" in doc["error"], doc
     else:
         assert err.strip() == "rl-pool: interrupted"
+
+
+def test_a_stop_that_jax_wraps_in_its_own_error_still_stops_the_member():
+    """SIGTERM landing while jax compares a jitted call's static arguments (the policy's spec)
+    reaches the member as jax's ValueError, not as Stopped; the member finds the stop behind it."""
+    import jax
+
+    from rl_pool.commands.member import stop_within
+
+    armed = []
+
+    class Spec:  # a static argument like PolicySpec: hashed, and compared with the cached one
+        def __hash__(self):
+            return 1
+
+        def __eq__(self, other):
+            if armed:
+                signal.raise_signal(signal.SIGTERM)
+            return isinstance(other, Spec)
+
+    step = jax.jit(lambda x, spec: x + 1.0, static_argnames=("spec",))
+    latch = SignalLatch(Stopped)
+    old = latch.install((signal.SIGTERM,))
+    try:
+        step(1.0, spec=Spec())
+        armed.append(True)
+        with pytest.raises(BaseException) as caught:
+            step(1.0, spec=Spec())
+        assert not isinstance(caught.value, Stopped)  # what the member's loop sees: jax's error
+        stop = stop_within(caught.value, latch)
+        assert isinstance(stop, Stopped) and stop.signum == signal.SIGTERM
+    finally:
+        latch.restore(old)
+    assert stop_within(ValueError("a real failure"), SignalLatch(Stopped)) is None
