@@ -178,7 +178,7 @@ def run(pool_dir: str, requested: dict, mc: MemberConfig, quiet: bool = False) -
             stop = stop_within(exc, _stop)
             if stop is None:
                 raise
-            raise stop from exc
+            raise Stopped(stop.signum) from None
     except Stopped as exc:
         log.warning("stopped by %s; deposits on disk are whole, restart to resume", exc)
         hb.stop("stopped", error=f"stopped by {exc}")
