@@ -192,3 +192,17 @@ def finite_differences(J, params: dict, h: float = 1e-6) -> dict:
             fd[idx] = (J(params | {name: w + e}) - J(params | {name: w - e})) / (2 * h)
         out[name] = fd
     return out
+
+
+def adam_ascent_by_hand(p: dict, m: dict, v: dict, g: dict, t: float, lr: float, skip: str = "v_") -> None:
+    """One Adam step up ``g``, written out array by array in place (bias-corrected for step ``t``);
+    arrays named ``skip*`` (the value network's) are left as they are."""
+    from rl_pool.maths.learner import ADAM_EPS
+
+    for k in p:
+        if k.startswith(skip):
+            continue
+        gk = np.asarray(g[k])
+        m[k] = 0.9 * m[k] + 0.1 * gk
+        v[k] = 0.999 * v[k] + 0.001 * gk * gk
+        p[k] = p[k] + lr * (m[k] / (1 - 0.9**t)) / (np.sqrt(v[k] / (1 - 0.999**t)) + ADAM_EPS)

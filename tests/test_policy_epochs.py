@@ -16,7 +16,7 @@ from rl_pool.maths import learner, policy
 from rl_pool.maths.agent import Agent, AgentMeta
 
 from .conftest import SHORT, rl_pool
-from .helpers import finite_differences
+from .helpers import adam_ascent_by_hand, finite_differences
 
 SPEC = policy.PolicySpec("mlp", (5,), "exp", (4,))
 PLAIN = dataclasses.replace(SPEC, value=())
@@ -94,14 +94,7 @@ def test_policy_epochs_are_adam_steps_of_the_policy_alone_written_out():
     p, m, v = dict(params), dict(opt.m), dict(opt.v)
     for step in range(3):
         g = jax.grad(learner.clipped_objective)(p, x, u, adv, mask, logp_old, 0.2, SPEC)
-        t = 2.0 + 1 + step
-        for k in params:
-            if k.startswith("v_"):
-                continue
-            gk = np.asarray(g[k])
-            m[k] = 0.9 * m[k] + 0.1 * gk
-            v[k] = 0.999 * v[k] + 0.001 * gk * gk
-            p[k] = p[k] + 0.01 * (m[k] / (1 - 0.9**t)) / (np.sqrt(v[k] / (1 - 0.999**t)) + learner.ADAM_EPS)
+        adam_ascent_by_hand(p, m, v, g, 2.0 + 1 + step, 0.01)
     for k in params:
         np.testing.assert_allclose(p1[k], p[k], rtol=1e-10, atol=1e-14, err_msg=k)
         np.testing.assert_allclose(opt1.m[k], m[k], rtol=1e-10, atol=1e-16, err_msg=k)
