@@ -206,3 +206,12 @@ def adam_ascent_by_hand(p: dict, m: dict, v: dict, g: dict, t: float, lr: float,
         m[k] = 0.9 * m[k] + 0.1 * gk
         v[k] = 0.999 * v[k] + 0.001 * gk * gk
         p[k] = p[k] + lr * (m[k] / (1 - 0.9**t)) / (np.sqrt(v[k] / (1 - 0.999**t)) + ADAM_EPS)
+
+
+def random_opt_state(params: dict, seed: int, t: float):
+    """Adam moments well away from zero (and a step count ``t``), so that steps written out test them."""
+    from rl_pool.maths.learner import OptState
+
+    rng = np.random.default_rng(seed)
+    return OptState({k: rng.normal(size=a.shape) * 0.01 for k, a in params.items()},
+                    {k: rng.uniform(0, 0.01, size=a.shape) for k, a in params.items()}, t)

@@ -15,7 +15,7 @@ from rl_pool.maths import learner, policy
 from rl_pool.maths.agent import Agent, AgentMeta
 
 from .conftest import SHORT, rl_pool
-from .helpers import adam_ascent_by_hand
+from .helpers import adam_ascent_by_hand, random_opt_state
 
 SPEC = policy.PolicySpec("mlp", (5,), "exp", (4,))
 
@@ -52,9 +52,7 @@ def test_every_pass_takes_each_valid_step_once_in_a_fresh_order():
 
 def test_minibatch_steps_are_adam_steps_on_each_minibatch_written_out():
     params, x, u, adv, mask = _batch(3)
-    rng = np.random.default_rng(4)
-    opt = learner.OptState({k: rng.normal(size=v.shape) * 0.01 for k, v in params.items()},
-                           {k: rng.uniform(0, 0.01, size=v.shape) for k, v in params.items()}, 2.0)
+    opt = random_opt_state(params, 4, 2.0)
     logp_old = learner.log_prob({k: v - 0.02 for k, v in params.items()}, x, u, SPEC)
     p1, opt1 = learner.policy_minibatches(params, opt, x, u, adv, mask, logp_old, 0.01, 0.2, 2, 4,
                                           np.random.default_rng(7), SPEC)

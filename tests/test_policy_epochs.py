@@ -16,7 +16,7 @@ from rl_pool.maths import learner, policy
 from rl_pool.maths.agent import Agent, AgentMeta
 
 from .conftest import SHORT, rl_pool
-from .helpers import adam_ascent_by_hand, finite_differences
+from .helpers import adam_ascent_by_hand, finite_differences, random_opt_state
 
 SPEC = policy.PolicySpec("mlp", (5,), "exp", (4,))
 PLAIN = dataclasses.replace(SPEC, value=())
@@ -84,9 +84,7 @@ def test_at_the_policy_that_drew_the_batch_the_gradient_is_reinforces():
 
 def test_policy_epochs_are_adam_steps_of_the_policy_alone_written_out():
     params, x, u, adv, mask = _batch(3)
-    rng = np.random.default_rng(4)
-    opt = learner.OptState({k: rng.normal(size=v.shape) * 0.01 for k, v in params.items()},
-                           {k: rng.uniform(0, 0.01, size=v.shape) for k, v in params.items()}, 2.0)
+    opt = random_opt_state(params, 4, 2.0)
     logp_old = learner.log_prob({k: v - 0.02 for k, v in params.items()}, x, u, SPEC)
     p1, opt1 = learner.policy_epochs(params, opt, x, u, adv, mask, logp_old, 0.01, 0.2, 3, SPEC)
     import jax
