@@ -140,10 +140,9 @@ def test_ctrl_c_while_an_env_is_made_stops_instead_of_reporting_a_bad_environmen
 
 def test_a_stop_that_jax_wraps_in_its_own_error_still_stops_the_member():
     """SIGTERM landing while jax compares a jitted call's static arguments (the policy's spec)
-    reaches the member as jax's ValueError, not as Stopped; the member finds the stop behind it."""
+    reaches the member as jax's ValueError, not as Stopped; the member's latch raises the stop
+    behind it (``check``), and a failure with no signal behind it stays a failure."""
     import jax
-
-    from rl_pool.commands.member import stop_within
 
     armed = []
 
@@ -165,8 +164,9 @@ def test_a_stop_that_jax_wraps_in_its_own_error_still_stops_the_member():
         with pytest.raises(BaseException) as caught:
             step(1.0, spec=Spec())
         assert not isinstance(caught.value, Stopped)  # what the member's loop sees: jax's error
-        stop = stop_within(caught.value, latch)
-        assert isinstance(stop, Stopped) and stop.signum == signal.SIGTERM
+        with pytest.raises(Stopped) as stop:
+            latch.check()
+        assert stop.value.signum == signal.SIGTERM
     finally:
         latch.restore(old)
-    assert stop_within(ValueError("a real failure"), SignalLatch(Stopped)) is None
+    SignalLatch(Stopped).check()  # no signal behind a real failure: nothing to raise

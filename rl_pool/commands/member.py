@@ -174,11 +174,11 @@ def run(pool_dir: str, requested: dict, mc: MemberConfig, quiet: bool = False) -
         hb.start()
         try:
             _loop(paths, cfg, mc, hb, last + 1)
-        except Exception as exc:
-            stop = stop_within(exc, _stop)
-            if stop is None:
-                raise
-            raise Stopped(stop.signum) from None
+        except Exception:
+            # A stop can surface wrapped in a library's own error (jax turns one raised while it
+            # compares a jitted call's static arguments into a ValueError): still a stop.
+            _stop.check()
+            raise
     except Stopped as exc:
         log.warning("stopped by %s; deposits on disk are whole, restart to resume", exc)
         hb.stop("stopped", error=f"stopped by {exc}")
@@ -204,19 +204,6 @@ def run(pool_dir: str, requested: dict, mc: MemberConfig, quiet: bool = False) -
     hb.stop("finished")
     log.info("done: iteration %d selected", mc.iterations)
     return EXIT_OK
-
-
-def stop_within(exc: BaseException, latch: SignalLatch) -> Stopped | None:
-    """The stop signal behind an error, if there is one. A signal's ``Stopped`` can surface
-    wrapped in a library's own error: jax turns an exception raised while it compares a jitted
-    call's static arguments into a ``ValueError``. Found in the error's causes, or in the latch
-    once a signal has arrived (the process is stopping either way)."""
-    seen = exc
-    while seen is not None:
-        if isinstance(seen, Stopped):
-            return seen
-        seen = seen.__cause__ or seen.__context__
-    return Stopped(latch.signum) if latch.signum is not None else None
 
 
 def disk_error_line(member: int, exc: OSError, root: str) -> str:

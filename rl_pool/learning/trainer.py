@@ -104,7 +104,8 @@ def train(agent: Agent, envs, cfg: PoolConfig, lr: float, member: int, iteration
     T = agent.meta.max_episode_steps
     steps, ep_returns, gnorms = 0, [], []
     B = cfg.batch_episodes
-    shuffle = np.random.Generator(np.random.PCG64(_seq(cfg.seed, member, iteration, _MINIBATCH)))
+    shuffle = (np.random.Generator(np.random.PCG64(_seq(cfg.seed, member, iteration, _MINIBATCH)))
+               if cfg.minibatch_steps else None)
     for k in range(cfg.updates_per_iteration):
         batch = run_episodes(envs, params, spec, norm, low, high, seeds[k * B:(k + 1) * B], T, rng,
                              deterministic=False)
