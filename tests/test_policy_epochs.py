@@ -114,7 +114,7 @@ def test_policy_epochs_skip_the_padding_after_the_longest_episode(monkeypatch):
     opt = learner.OptState({k: np.zeros_like(v) for k, v in params.items()},
                            {k: np.zeros_like(v) for k, v in params.items()}, 1.0)
     logp_old = learner.log_prob(params, x, u, SPEC)
-    assert learner._cut(mask) == 200
+    assert learner.cut_length(mask) == 200
     cut, _ = learner.policy_epochs(params, opt, x, u, adv, mask, logp_old, 0.01, 0.2, 2, SPEC)  # 200 steps
     monkeypatch.setattr(learner, "FIT_BUCKET", 10**6)
     whole, _ = learner.policy_epochs(params, opt, x, u, adv, mask, logp_old, 0.01, 0.2, 2, SPEC)

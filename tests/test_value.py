@@ -16,7 +16,7 @@ from rl_pool.maths import learner, policy, returns
 from rl_pool.maths.agent import Agent, AgentMeta
 
 from .conftest import ROOT, SHORT, rl_pool
-from .helpers import finite_differences
+from .helpers import finite_differences, random_opt_state
 
 SPEC = policy.PolicySpec("mlp", (5,), "exp", (6, 4))
 LINEAR_SPEC = policy.PolicySpec("linear", (), "exp", (3,))
@@ -174,6 +174,51 @@ def test_value_epochs_skip_the_padding_after_the_longest_episode(monkeypatch):
     # the time input is the step over the episode limit (250), not over the cut
     np.testing.assert_allclose(learner.values(params, x[:, :200], SPEC, limit=250),
                                learner.values(params, x, SPEC)[:, :200], rtol=1e-12)
+
+
+def test_an_update_on_a_batch_cut_after_its_longest_episode_is_the_update_on_the_whole_batch():
+    """The trainer cuts each batch after its longest episode (rounded up to FIT_BUCKET) before the
+    update: with the episodes' time limit given, the step is the whole padded batch's step."""
+    rng = np.random.default_rng(11)
+    params = _params(SPEC, seed=11)
+    x, u = rng.normal(size=(3, 250, 3)), rng.uniform(0.05, 0.95, size=(3, 250, 2))
+    mask = np.zeros((3, 250))
+    for b, n in enumerate((30, 120, 80)):
+        mask[b, :n] = 1
+    adv, targets = rng.normal(size=(3, 250)) * mask, rng.normal(size=(3, 250)) * mask
+    opt = random_opt_state(params, 11, 4.0)
+    cut = learner.cut_length(mask)
+    assert cut == 200
+    whole = learner.update(params, opt, x, u, adv, mask, 0.01, "adam", SPEC, targets)
+    short = learner.update(params, opt, x[:, :cut], u[:, :cut], adv[:, :cut], mask[:, :cut], 0.01, "adam", SPEC,
+                           targets[:, :cut], limit=250)
+    for k in params:
+        np.testing.assert_allclose(short[0][k], whole[0][k], rtol=1e-12, atol=1e-15, err_msg=k)
+        np.testing.assert_allclose(short[1].v[k], whole[1].v[k], rtol=1e-9, atol=1e-20, err_msg=k)
+    assert short[2] == pytest.approx(whole[2], rel=1e-12)
+    # without the limit the value network's time input would be the step over 200, not over 250
+    wrong = learner.update(params, opt, x[:, :cut], u[:, :cut], adv[:, :cut], mask[:, :cut], 0.01, "adam", SPEC,
+                           targets[:, :cut])
+    assert not np.allclose(wrong[0]["v_w0"], whole[0]["v_w0"], rtol=1e-9, atol=0)
+
+
+def test_a_member_trains_on_batches_cut_as_on_whole_ones(monkeypatch):
+    """On real InvertedPendulum episodes, which end long before their limit of 250 steps: a
+    member's training (value network, its extra epochs, clipped passes) on batches cut after the
+    longest episode takes the same steps as on batches padded to the limit, up to rounding."""
+    cfg = PoolConfig(env="InvertedPendulum-v5", max_episode_steps=250, train_episodes=4, batch_episodes=4,
+                     baseline="value", gamma=0.99, gae_lambda=0.95, policy_epochs=2, value_hidden="8").validate()
+    env_list = [envs.make(cfg.env, {"max_episode_steps": 250})[0] for _ in range(4)]
+    meta = AgentMeta(cfg.env, {}, 250, 4, 1, (-3.0,), (3.0,), cfg.spec)
+    start = Agent.initial(meta, seed=0)
+    cut = trainer.train(start, env_list, cfg, 0.01, 0, 0)
+    monkeypatch.setattr(learner, "FIT_BUCKET", 10**6)  # nothing is cut: every batch padded to 250
+    whole = trainer.train(start, env_list, cfg, 0.01, 0, 0)
+    assert max(cut.episode_returns) < 100  # the episodes ended early, so the batch was cut
+    assert cut.episode_returns == whole.episode_returns and cut.steps == whole.steps
+    for k in start.params:
+        np.testing.assert_allclose(cut.agent.params[k], whole.agent.params[k], rtol=1e-9, atol=1e-12, err_msg=k)
+    assert cut.agent.opt_t == whole.agent.opt_t
 
 
 def test_agent_files_carry_the_value_network_and_agents_without_one_keep_their_bytes():

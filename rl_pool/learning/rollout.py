@@ -30,6 +30,14 @@ class Batch(NamedTuple):
     def steps(self) -> int:
         return int(self.lengths.sum())
 
+    def cut(self, length) -> Batch:
+        """The batch padded only to ``length(mask)`` steps (at least its longest episode): what comes
+        after is padding, and every sum over the batch skips it. Views, not copies."""
+        n = length(self.mask)
+        if n >= self.mask.shape[1]:
+            return self
+        return self._replace(obs=self.obs[:, :n], u=self.u[:, :n], rewards=self.rewards[:, :n], mask=self.mask[:, :n])
+
 
 def run_episodes(envs, params: dict, spec: policy.PolicySpec, norm, low, high, seeds, max_steps: int,
                  rng: np.random.Generator | None, deterministic: bool, record: bool = True):

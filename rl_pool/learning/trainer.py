@@ -108,19 +108,19 @@ def train(agent: Agent, envs, cfg: PoolConfig, lr: float, member: int, iteration
                if cfg.minibatch_steps else None)
     for k in range(cfg.updates_per_iteration):
         batch = run_episodes(envs, params, spec, norm, low, high, seeds[k * B:(k + 1) * B], T, rng,
-                             deterministic=False)
+                             deterministic=False).cut(learner.cut_length)
         x = normalizer.normalize(norm, batch.obs)
         # The shift (e.g. a survival bonus) only shapes training; returns reported stay the env's.
         rewards = batch.rewards - cfg.reward_shift * batch.mask if cfg.reward_shift else batch.rewards
         g = returns.discounted_returns(rewards, batch.mask, cfg.gamma)
         # The value network (if any) as it stands before this batch: fitted on earlier ones only.
-        v = learner.values(params, x, spec) if spec.value else None
+        v = learner.values(params, x, spec, limit=T) if spec.value else None
         adv = returns.advantages(rewards, batch.mask, cfg.gamma, cfg.baseline, x, cfg.gae_lambda, v, g)
         targets = returns.value_targets(g, batch.mask) if spec.value else None
         # the policy that drew the batch, for the ratios of --policy-epochs' extra steps
         logp_old = learner.log_prob(params, x, batch.u, spec) if cfg.policy_epochs > 1 else None
         params, opt, gnorm = learner.update(params, opt, x, batch.u, adv, batch.mask, lr,
-                                            cfg.optimizer, spec, targets)
+                                            cfg.optimizer, spec, targets, limit=T)
         if cfg.policy_epochs > 1 and cfg.minibatch_steps:
             params, opt = learner.policy_minibatches(params, opt, x, batch.u, adv, batch.mask, logp_old, lr, cfg.clip,
                                                      cfg.policy_epochs - 1, cfg.minibatch_steps, shuffle, spec)
@@ -128,7 +128,8 @@ def train(agent: Agent, envs, cfg: PoolConfig, lr: float, member: int, iteration
             params, opt = learner.policy_epochs(params, opt, x, batch.u, adv, batch.mask, logp_old, lr,
                                                 cfg.clip, cfg.policy_epochs - 1, spec)
         if spec.value and cfg.value_epochs > 1:
-            params, opt = learner.fit_value(params, opt, x, targets, batch.mask, lr, cfg.value_epochs - 1, spec)
+            params, opt = learner.fit_value(params, opt, x, targets, batch.mask, lr, cfg.value_epochs - 1, spec,
+                                            limit=T)
         norm = normalizer.update(norm, batch.obs[batch.mask > 0])
         steps += batch.steps
         ep_returns.extend(float(r) for r in batch.returns)

@@ -91,18 +91,20 @@ def value_loss(params, x, targets, mask, spec: policy.PolicySpec, limit: int | N
     return 0.5 * (err * err * mask).sum() / jnp.maximum(mask.sum(), 1.0)
 
 
-def objective(params, x, u, adv, mask, spec: policy.PolicySpec, targets=None):
+def objective(params, x, u, adv, mask, spec: policy.PolicySpec, targets=None, limit: int | None = None):
     """Surrogate ``J`` above; ``x`` ``[B,T,obs]``, ``u`` ``[B,T,act]``, ``adv``/``mask``/``targets``
-    ``[B,T]`` (``targets``: the value network's, needed when ``spec`` has one)."""
+    ``[B,T]`` (``targets``: the value network's, needed when ``spec`` has one; ``limit``: the
+    episodes' time limit, which the value network's time feature is a fraction of, when the batch
+    is cut shorter than it)."""
     logp = policy.log_prob_unit(params, x, u, spec, xp=jnp, gammaln=gammaln)
     n = jnp.maximum(mask.sum(), 1.0)
     j = (logp * adv * mask).sum() / n
     if spec.value:
-        j = j - value_loss(params, x, targets, mask, spec)
+        j = j - value_loss(params, x, targets, mask, spec, limit)
     return j
 
 
-policy_gradient = jax.jit(jax.grad(objective), static_argnames=("spec",))
+policy_gradient = jax.jit(jax.grad(objective), static_argnames=("spec", "limit"))
 
 
 def _adam_ascent(params, m, v, g, t, lr):
@@ -119,9 +121,9 @@ def _as_numpy(tree: dict) -> dict:
     return {k: np.asarray(a) for k, a in tree.items()}
 
 
-@partial(jax.jit, static_argnames=("optimizer", "spec"))
-def _update(params, m, v, t, x, u, adv, mask, lr, optimizer, spec, targets):
-    g = jax.grad(objective)(params, x, u, adv, mask, spec, targets)
+@partial(jax.jit, static_argnames=("optimizer", "spec", "limit"))
+def _update(params, m, v, t, x, u, adv, mask, lr, optimizer, spec, targets, limit):
+    g = jax.grad(objective)(params, x, u, adv, mask, spec, targets, limit)
     leaves = jax.tree_util.tree_leaves(g)
     gnorm = jnp.sqrt(sum((leaf * leaf).sum() for leaf in leaves))
     if optimizer == "adam":
@@ -133,12 +135,13 @@ def _update(params, m, v, t, x, u, adv, mask, lr, optimizer, spec, targets):
     return params, m, v, t, gnorm
 
 
-#: fit_value and policy_epochs cut a batch after its longest episode, rounded up to a multiple of this (a few shapes
-#: to compile, and short episodes do not pay for the padding to the limit)
+#: A batch is cut after its longest episode, rounded up to a multiple of this (a few shapes to
+#: compile, and short episodes do not pay for the padding to the limit): by the trainer before any
+#: of its arithmetic, and by fit_value and policy_epochs for callers that pass whole batches
 FIT_BUCKET = 100
 
 
-def _cut(mask) -> int:
+def cut_length(mask) -> int:
     """The padded length a batch can be cut to: past its longest episode, rounded up to a multiple
     of :data:`FIT_BUCKET` (the steps after it are all padding)."""
     longest = int(np.flatnonzero(mask.any(axis=0))[-1]) + 1 if mask.any() else 1
@@ -166,16 +169,17 @@ def _fit_value(params, m, v, t, x, targets, mask, lr, spec, steps, limit):
 
 
 def fit_value(params: dict, opt: OptState, x, targets, mask, lr: float, steps: int,
-              spec: policy.PolicySpec):
+              spec: policy.PolicySpec, limit: int | None = None):
     """``steps`` more Adam steps on the value network alone, on the batch it has just stepped on
     (more passes over each batch, as PPO's value epochs); the policy's arrays, their moments and
-    the step count are left as they are (the bias correction uses the count as it stands)."""
+    the step count are left as they are (the bias correction uses the count as it stands).
+    ``limit``: the episodes' time limit, when the batch is already cut shorter (by default its length)."""
     if steps < 1 or not spec.value:
         return params, opt
     if opt.t < 1:
         raise ValueError("fit_value follows an update: the step count must be at least 1")
-    limit = mask.shape[1]
-    cut = _cut(mask)
+    limit = limit or mask.shape[1]
+    cut = cut_length(mask)
     p, m, v = jax.device_get(_fit_value(params, opt.m, opt.v, opt.t, x[:, :cut], targets[:, :cut],
                                         mask[:, :cut], float(lr), spec, int(steps), limit))
     return params | _as_numpy(p), OptState(opt.m | _as_numpy(m), opt.v | _as_numpy(v), opt.t)
@@ -205,7 +209,8 @@ def minibatch_plan(mask, size: int, passes: int, rng: np.random.Generator):
     indices ``b * T + t``) and cuts it into ``ceil(n / size)`` minibatches; the last one of a pass is
     filled up with ``B * T``, the index of a padding row. ``order`` has room for ``passes`` passes
     over a batch of full episodes (``[passes * ceil(B * T / size), size]``, one shape per batch
-    layout, so the jitted loop compiles once); its first ``count`` rows are the steps to take."""
+    layout and length, so the jitted loop compiles once for each); its first ``count`` rows are the
+    steps to take."""
     mask = np.asarray(mask)
     flat = np.flatnonzero(mask.reshape(-1) > 0)
     n, pad = flat.size, mask.size
@@ -281,7 +286,7 @@ def policy_epochs(params: dict, opt: OptState, x, u, adv, mask, logp_old, lr: fl
         return params, opt
     if opt.t < 1:
         raise ValueError("policy_epochs follows an update: the step count must be at least 1")
-    cut = _cut(mask)
+    cut = cut_length(mask)
     p, m, v = jax.device_get(_policy_epochs(params, opt.m, opt.v, opt.t, x[:, :cut], u[:, :cut],
                                             adv[:, :cut], mask[:, :cut], logp_old[:, :cut],
                                             float(lr), float(clip), spec, int(steps)))
@@ -289,10 +294,11 @@ def policy_epochs(params: dict, opt: OptState, x, u, adv, mask, logp_old, lr: fl
 
 
 def update(params: dict, opt: OptState, x, u, adv, mask, lr: float, optimizer: str,
-           spec: policy.PolicySpec, targets=None):
+           spec: policy.PolicySpec, targets=None, limit: int | None = None):
     """One gradient-ascent step on a batch; returns ``(params, opt_state, grad_norm)`` as NumPy.
     ``targets``: what the value network learns (:func:`rl_pool.maths.returns.value_targets`),
-    when ``spec`` has one."""
+    when ``spec`` has one; ``limit``: the episodes' time limit, when the batch is cut shorter
+    (by default its length)."""
     if optimizer not in OPTIMIZERS:
         raise ValueError(f"unknown optimizer {optimizer!r}")
     b, t_len = mask.shape
@@ -301,6 +307,6 @@ def update(params: dict, opt: OptState, x, u, adv, mask, lr: float, optimizer: s
     if spec.value and (targets is None or np.shape(targets) != (b, t_len)):
         raise ValueError("a policy with a value network needs its targets, shaped like the mask")
     out = _update(params, opt.m, opt.v, opt.t, x, u, adv, mask, float(lr), optimizer, spec,
-                  targets if spec.value else None)
+                  targets if spec.value else None, int(limit or t_len))
     params, m, v, t, gnorm = jax.device_get(out)
     return _as_numpy(params), OptState(_as_numpy(m), _as_numpy(v), float(t)), float(gnorm)
