@@ -30,10 +30,9 @@ class Batch(NamedTuple):
     def steps(self) -> int:
         return int(self.lengths.sum())
 
-    def cut(self, length) -> Batch:
-        """The batch padded only to ``length(mask)`` steps (at least its longest episode): what comes
-        after is padding, and every sum over the batch skips it. Views, not copies."""
-        n = length(self.mask)
+    def cut(self, n: int) -> Batch:
+        """The batch padded only to ``n`` steps (at least its longest episode): what comes after is
+        padding, and every sum over the batch skips it. Views, not copies."""
         if n >= self.mask.shape[1]:
             return self
         return self._replace(obs=self.obs[:, :n], u=self.u[:, :n], rewards=self.rewards[:, :n], mask=self.mask[:, :n])

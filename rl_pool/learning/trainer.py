@@ -108,7 +108,8 @@ def train(agent: Agent, envs, cfg: PoolConfig, lr: float, member: int, iteration
                if cfg.minibatch_steps else None)
     for k in range(cfg.updates_per_iteration):
         batch = run_episodes(envs, params, spec, norm, low, high, seeds[k * B:(k + 1) * B], T, rng,
-                             deterministic=False).cut(learner.cut_length)
+                             deterministic=False)
+        batch = batch.cut(learner.cut_length(batch.mask))  # padded to its longest episode, not to T
         x = normalizer.normalize(norm, batch.obs)
         # The shift (e.g. a survival bonus) only shapes training; returns reported stay the env's.
         rewards = batch.rewards - cfg.reward_shift * batch.mask if cfg.reward_shift else batch.rewards
