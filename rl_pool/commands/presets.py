@@ -48,9 +48,10 @@ PRESETS: dict[str, dict] = {
     "pusher": {"env": "Pusher-v5", "eval_episodes": 20, "train_episodes": 100, "batch_episodes": 50,
                "policy": "mlp", "hidden": "64,64", "init_shape": 20.0, "rate_anneal": 500,
                "learning_rates": [0.001, 0.003]},
-    "humanoid": {"env": "Humanoid-v5", "gamma": 0.99, "selection": "branches", "revert_after": 20,
+    "humanoid": {"env": "Humanoid-v5", "gamma": 0.99, "baseline": "value", "gae_lambda": 0.95, "policy_epochs": 10,
+                 "minibatch_steps": 64, "selection": "branches", "revert_after": 20,
                  "eval_episodes": 10, "train_episodes": 40, "batch_episodes": 20, "policy": "mlp",
-                 "hidden": "64,64", "init_shape": 20.0, "learning_rates": [0.001, 0.003]},
+                 "hidden": "64,64", "init_shape": 20.0, "learning_rates": [0.0001, 0.0003]},
     "humanoid-standup": {"env": "HumanoidStandup-v5", "gamma": 0.99, "baseline": "linear", "gae_lambda": 0.95,
                          "eval_episodes": 5, "learning_rates": [0.003, 0.01]},
 }
