@@ -69,6 +69,11 @@ class PoolConfig:
     minibatch_steps: int = opt(0, "with --policy-epochs above 1: each extra pass goes through the batch's steps "
                                   "in a fresh random order, S at a time, one Adam step per minibatch (PPO's "
                                   "minibatches; 0: one step on the whole batch per pass)", added=True)
+    value_minibatch_steps: int = opt(0, "with --baseline value: the value network's steps after the first go "
+                                        "through the batch's steps in passes, S steps at a time in a fresh "
+                                        "random order, one Adam step per minibatch (--value-epochs - 1 passes, "
+                                        "as PPO fits its critic; 0: one step on the whole batch per epoch)",
+                                     added=True)
     gae_lambda: float = opt(1.0, "lambda of generalised advantage estimation, with the baseline as the value "
                                  "function (1: the return-to-go minus the baseline; below 1: less variance, "
                                  "some bias)", added=True)
@@ -165,8 +170,9 @@ class PoolConfig:
         for name in ("value_epochs", "policy_epochs"):
             if getattr(self, name) > 1000:
                 raise UsageError(f"--{name.replace('_', '-')} must be at most 1000, got {getattr(self, name)}")
-        if not 0 <= self.minibatch_steps <= 10**6:
-            raise UsageError(f"--minibatch-steps must be in [0, 1000000], got {self.minibatch_steps}")
+        for name in ("minibatch_steps", "value_minibatch_steps"):
+            if not 0 <= getattr(self, name) <= 10**6:
+                raise UsageError(f"--{name.replace('_', '-')} must be in [0, 1000000], got {getattr(self, name)}")
         if not (math.isfinite(self.clip) and 0.0 < self.clip <= 10.0):
             raise UsageError(f"--clip must be in (0, 10], got {self.clip}")
         if self.policy_epochs > 1 and self.optimizer != "adam":
@@ -277,6 +283,8 @@ class PoolConfig:
                 raise UsageError("--clip needs --policy-epochs above 1")
             if requested.get("minibatch_steps") and cfg.policy_epochs < 2:
                 raise UsageError("--minibatch-steps needs --policy-epochs above 1")
+            if requested.get("value_minibatch_steps") and (cfg.baseline != "value" or cfg.value_epochs < 2):
+                raise UsageError("--value-minibatch-steps needs --baseline value and --value-epochs above 1")
             return cfg
         for name, value in requested.items():
             have = getattr(saved, name)

@@ -135,3 +135,106 @@ def test_a_pool_with_minibatches_records_them_and_replays_byte_for_byte(tmp_path
     r = rl_pool("launch", "--pool-dir", tmp_path / "c", "--pool-size", 2, "--minibatch-steps", 50, *SHORT,
                 "--iterations", 1, "--quiet", check=2)
     assert r.stderr.strip().splitlines() == ["rl-pool: error: --minibatch-steps needs --policy-epochs above 1"]
+
+
+# The value network's epochs in minibatches (--value-minibatch-steps)
+
+
+def test_value_minibatch_steps_are_adam_steps_on_each_minibatch_written_out():
+    import jax
+    import jax.numpy as jnp
+
+    params, x, _, _, mask = _batch(4)
+    targets = np.random.default_rng(5).normal(size=mask.shape) * mask
+    opt = random_opt_state(params, 6, 3.0)
+    limit = 10  # the episodes' limit: the time input is t / 10, not t / 7
+    p1, opt1 = learner.value_minibatches(params, opt, x, targets, mask, 0.01, 2, 4, np.random.default_rng(9),
+                                         SPEC, limit=limit)
+    order, count = learner.minibatch_plan(mask, 4, 2, np.random.default_rng(9))
+    assert count == 2 * 4
+    names = [k for k in params if k.startswith("v_")]
+    p, m, v = ({k: d[k] for k in names} for d in (params, opt.m, opt.v))
+    for step in range(count):
+        rows = [i for i in order[step] if i < mask.size]
+        bi, ti = np.divmod(np.asarray(rows), mask.shape[1])
+
+        def mse(q, bi=bi, ti=ti):
+            err = policy.value(params | q, x[bi, ti], ti / limit, SPEC, jnp) - targets[bi, ti]
+            return 0.5 * (err * err).mean()
+
+        g = jax.grad(lambda q: -mse(q))(p)
+        adam_ascent_by_hand(p, m, v, g, 3.0, 0.01, skip="-")  # the step count stays at 3
+    for k in params:
+        if k in p:
+            np.testing.assert_allclose(p1[k], p[k], rtol=1e-10, atol=1e-14, err_msg=k)
+            np.testing.assert_allclose(opt1.v[k], v[k], rtol=1e-10, atol=1e-16, err_msg=k)
+        else:  # the policy and its moments stay where they were
+            assert np.array_equal(p1[k], params[k]) and np.array_equal(opt1.m[k], opt.m[k])
+    assert opt1.t == 3.0
+    before = float(learner.value_loss(params, x, targets, mask, SPEC, limit))
+    assert float(learner.value_loss(p1, x, targets, mask, SPEC, limit)) < before
+    same, same_opt = learner.value_minibatches(params, opt, x, targets, mask, 0.01, 0, 4,
+                                               np.random.default_rng(9), SPEC)
+    assert same is params and same_opt is opt
+
+
+def test_one_value_minibatch_of_the_whole_batch_is_a_value_epoch():
+    """With room for the whole batch in one minibatch, a pass is :func:`learner.fit_value`'s step."""
+    params, x, _, _, mask = _batch(6)
+    targets = np.random.default_rng(7).normal(size=mask.shape) * mask
+    opt = random_opt_state(params, 8, 2.0)
+    mini, mopt = learner.value_minibatches(params, opt, x, targets, mask, 0.02, 3, mask.size,
+                                           np.random.default_rng(0), SPEC)
+    whole, wopt = learner.fit_value(params, opt, x, targets, mask, 0.02, 3, SPEC)
+    for k in params:
+        np.testing.assert_allclose(mini[k], whole[k], rtol=1e-9, atol=1e-13, err_msg=k)
+        np.testing.assert_allclose(mopt.m[k], wopt.m[k], rtol=1e-9, atol=1e-15, err_msg=k)
+    assert mopt.t == wopt.t == 2.0
+
+
+def test_value_minibatch_options_are_checked_and_older_pools_read_without_them():
+    d = PoolConfig().validate().to_json()
+    d.pop("value_minibatch_steps")
+    assert PoolConfig.from_json(d).value_minibatch_steps == 0
+    for bad in (-1, 10**6 + 1):
+        with pytest.raises(UsageError, match="--value-minibatch-steps must be in"):
+            PoolConfig(value_minibatch_steps=bad).validate()
+    need = "--value-minibatch-steps needs --baseline value and --value-epochs above 1"
+    with pytest.raises(UsageError, match=need):
+        PoolConfig.merged({"value_minibatch_steps": 64}, None)
+    with pytest.raises(UsageError, match=need):
+        PoolConfig.merged({"value_minibatch_steps": 64, "baseline": "value", "value_epochs": 1}, None)
+    made = PoolConfig.merged({"value_minibatch_steps": 64, "baseline": "value"}, None)
+    assert made.value_minibatch_steps == 64
+
+
+def test_a_member_with_value_minibatches_fits_its_critic_further_and_replays_exactly():
+    """On real Swimmer episodes: the critic's minibatches take more steps than its whole-batch
+    epochs, from a stream of their own (the episodes and the policy's step are the same), and the
+    same seeds give the same bytes."""
+    cfg = PoolConfig(max_episode_steps=60, train_episodes=4, batch_episodes=4, baseline="value",
+                     value_epochs=3).validate()
+    env_list = [envs.make(cfg.env, {"max_episode_steps": 60})[0] for _ in range(4)]
+    meta = AgentMeta("Swimmer-v5", {}, 60, 8, 2, (-1.0, -1.0), (1.0, 1.0), cfg.spec)
+    start = Agent.initial(meta, seed=0)
+    whole = trainer.train(start, env_list, cfg, 0.01, 0, 0)
+    mini_cfg = dataclasses.replace(cfg, value_minibatch_steps=40)
+    mini = trainer.train(start, env_list, mini_cfg, 0.01, 0, 0)
+    again = trainer.train(start, env_list, mini_cfg, 0.01, 0, 0)
+    assert mini.agent.to_bytes() == again.agent.to_bytes()
+    assert mini.episode_returns == whole.episode_returns
+    assert whole.agent.opt_t == mini.agent.opt_t == 1.0  # the critic's steps leave the count alone
+    policy_arrays = [k for k in start.params if not k.startswith("v_")]
+    for k in policy_arrays:  # the same REINFORCE step: the critic's later steps do not touch the policy
+        assert np.array_equal(mini.agent.params[k], whole.agent.params[k]), k
+    moved = lambda a: sum(np.linalg.norm(a.params[k] - start.params[k])  # noqa: E731
+                          for k in start.params if k.startswith("v_"))
+    assert moved(mini.agent) > moved(whole.agent)  # 2 passes of 6 minibatches against 2 whole-batch steps
+
+
+def test_a_pool_refuses_value_minibatches_without_a_critic(tmp_path):
+    r = rl_pool("launch", "--pool-dir", tmp_path / "p", "--pool-size", 2, "--value-minibatch-steps", 50, *SHORT,
+                "--iterations", 1, "--quiet", check=2)
+    assert r.stderr.strip().splitlines() == [
+        "rl-pool: error: --value-minibatch-steps needs --baseline value and --value-epochs above 1"]
+    assert not (tmp_path / "p").exists()

@@ -20,7 +20,7 @@ from rl_pool.maths import learner, normalizer, returns
 from rl_pool.maths.agent import Agent
 
 # Stream tags, so the same (seed, member, iteration) never feeds two purposes.
-_TRAIN_ENV, _TRAIN_ACT, _EVAL_ENV, _EVAL_ACT, _LR_ADAPT, _MINIBATCH = 0, 1, 2, 3, 4, 5
+_TRAIN_ENV, _TRAIN_ACT, _EVAL_ENV, _EVAL_ACT, _LR_ADAPT, _MINIBATCH, _VALUE_MINIBATCH = 0, 1, 2, 3, 4, 5, 6
 LR_BOUNDS = (1e-5, 10.0)
 
 
@@ -106,6 +106,8 @@ def train(agent: Agent, envs, cfg: PoolConfig, lr: float, member: int, iteration
     B = cfg.batch_episodes
     shuffle = (np.random.Generator(np.random.PCG64(_seq(cfg.seed, member, iteration, _MINIBATCH)))
                if cfg.minibatch_steps else None)
+    value_shuffle = (np.random.Generator(np.random.PCG64(_seq(cfg.seed, member, iteration, _VALUE_MINIBATCH)))
+                     if cfg.value_minibatch_steps else None)
     for k in range(cfg.updates_per_iteration):
         batch = run_episodes(envs, params, spec, norm, low, high, seeds[k * B:(k + 1) * B], T, rng,
                              deterministic=False)
@@ -128,7 +130,10 @@ def train(agent: Agent, envs, cfg: PoolConfig, lr: float, member: int, iteration
         elif cfg.policy_epochs > 1:
             params, opt = learner.policy_epochs(params, opt, x, batch.u, adv, batch.mask, logp_old, lr,
                                                 cfg.clip, cfg.policy_epochs - 1, spec)
-        if spec.value and cfg.value_epochs > 1:
+        if spec.value and cfg.value_epochs > 1 and cfg.value_minibatch_steps:
+            params, opt = learner.value_minibatches(params, opt, x, targets, batch.mask, lr, cfg.value_epochs - 1,
+                                                    cfg.value_minibatch_steps, value_shuffle, spec, limit=T)
+        elif spec.value and cfg.value_epochs > 1:
             params, opt = learner.fit_value(params, opt, x, targets, batch.mask, lr, cfg.value_epochs - 1, spec,
                                             limit=T)
         norm = normalizer.update(norm, batch.obs[batch.mask > 0])

@@ -253,15 +253,61 @@ def policy_minibatches(params: dict, opt: OptState, x, u, adv, mask, logp_old, l
     order, count = minibatch_plan(mask, size, passes, rng)
     if count == 0:
         return params, opt
-    def flat(a):  # [B, T, ...] -> [B * T + 1, ...]: the steps, then one padding row (mask 0)
-        a = np.asarray(a)
-        rest = a.shape[2:]
-        return np.concatenate([a.reshape(mask.size, *rest), np.zeros((1, *rest), dtype=a.dtype)])
+    def flat(a):
+        return _flat_steps(a, mask)
 
     p, m, v = jax.device_get(_policy_minibatches(params, opt.m, opt.v, opt.t, flat(x), flat(u), flat(adv),
                                                  flat(mask), flat(logp_old), order, count, float(lr),
                                                  float(clip), spec))
     return (params | _as_numpy(p), OptState(opt.m | _as_numpy(m), opt.v | _as_numpy(v), opt.t + count))
+
+
+def _flat_steps(a, mask):
+    """``[B, T, ...]`` -> ``[B * T + 1, ...]``: a batch's steps in flat index order ``b * T + t``,
+    then one padding row (mask 0), the row :func:`minibatch_plan` fills minibatches up with."""
+    a = np.asarray(a)
+    rest = a.shape[2:]
+    return np.concatenate([a.reshape(mask.size, *rest), np.zeros((1, *rest), dtype=a.dtype)])
+
+
+@partial(jax.jit, static_argnames=("spec",))
+def _value_minibatches(params, m, v, t, x, t_frac, targets, mask, order, count, lr, spec):
+    names = [k for k in params if k.startswith(policy.VALUE_PREFIX)]
+    sub = lambda d: {k: d[k] for k in names}  # noqa: E731
+
+    def loss(q, idx):
+        err = policy.value(params | q, x[idx], t_frac[idx], spec, jnp) - targets[idx]
+        return 0.5 * (err * err * mask[idx]).sum() / jnp.maximum(mask[idx].sum(), 1.0)
+
+    def step(i, carry):
+        g = jax.grad(lambda q: -loss(q, order[i]))(carry[0])  # up -loss, as :func:`fit_value`
+        return _adam_ascent(*carry, g, t, lr)
+
+    return jax.lax.fori_loop(0, count, step, (sub(params), sub(m), sub(v)))
+
+
+def value_minibatches(params: dict, opt: OptState, x, targets, mask, lr: float, passes: int, size: int,
+                      rng: np.random.Generator, spec: policy.PolicySpec, limit: int | None = None):
+    """:func:`fit_value` in minibatches: ``passes`` passes of the value network alone over a batch,
+    each through its valid steps in a fresh random order (:func:`minibatch_plan`, drawn from
+    ``rng``), ``size`` steps at a time, one Adam step down each minibatch's mean squared error
+    (PPO's critic epochs). As in :func:`fit_value` the policy's arrays, their moments and the step
+    count stay as they are. ``limit``: the episodes' time limit (by default the batch's length),
+    which the value network's time feature is a fraction of."""
+    if passes < 1 or not spec.value:
+        return params, opt
+    if opt.t < 1:
+        raise ValueError("value_minibatches follows an update: the step count must be at least 1")
+    if size < 1:
+        raise ValueError(f"a minibatch needs at least one step, got {size}")
+    order, count = minibatch_plan(mask, size, passes, rng)
+    if count == 0:
+        return params, opt
+    t_frac = time_fraction(np.asarray(x), np, limit or mask.shape[1])
+    p, m, v = jax.device_get(_value_minibatches(params, opt.m, opt.v, opt.t, _flat_steps(x, mask),
+                                                _flat_steps(t_frac, mask), _flat_steps(targets, mask),
+                                                _flat_steps(mask, mask), order, count, float(lr), spec))
+    return params | _as_numpy(p), OptState(opt.m | _as_numpy(m), opt.v | _as_numpy(v), opt.t)
 
 
 @partial(jax.jit, static_argnames=("spec",))
