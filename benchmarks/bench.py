@@ -1,5 +1,5 @@
 """Benchmarks that print figures (not timed tests):
-``python benchmarks/bench.py {throughput,scaling,evaluate,protocol,profile,signing,simd}`` (outside the
+``python benchmarks/bench.py {throughput,scaling,evaluate,protocol,profile,signing,simd,train-cost}`` (outside the
 installed package: it needs rl-pool installed, e.g. by ``shell/setup.sh``).
 
 All figures of one run come from the same machine at the same time; compare
@@ -633,6 +633,56 @@ def signing(args) -> None:
           f"({100 * per_iter / 1e6 / 2.5:.4f}% of a 2.5 s Swimmer iteration)")
 
 
+def _option_value(text: str):
+    try:
+        return json.loads(text)
+    except json.JSONDecodeError:
+        return text
+
+
+def train_cost(args) -> None:
+    """Seconds per training iteration of one member with a preset's settings and with some of them
+    changed, alternating in one process on the same agent and the same episodes (every round
+    trains the given agent afresh at the same iteration, so both sides sample alike at first)."""
+    from dataclasses import fields, replace
+
+    from rl_pool.commands import presets
+    from rl_pool.config import PoolConfig
+    from rl_pool.learning import envs, trainer
+    from rl_pool.maths import learner
+    from rl_pool.maths.agent import Agent
+
+    learner.enable_compilation_cache()
+    names = {f.name for f in fields(PoolConfig)}
+    preset = presets.get(args.preset)
+    base = PoolConfig(**{k: v for k, v in preset.items() if k in names}).validate()
+    changed = {}
+    for item in args.set:
+        key, _, text = item.partition("=")
+        if key.replace("-", "_") not in names:
+            sys.exit(f"bench: unknown option {key!r}")
+        changed[key.replace("-", "_")] = _option_value(text)
+    sides = {"the preset": base, "changed": replace(base, **changed).validate()}
+    agent = Agent.load(args.agent)
+    env_list = [envs.make(base.env, base.train_env_kwargs or None)[0] for _ in range(base.batch_episodes)]
+    lr = float(preset["learning_rates"][0])
+    secs = {k: [] for k in sides}
+    steps = {k: [] for k in sides}
+    for rep in range(args.repeats + 1):
+        for name, cfg in sides.items():
+            r = trainer.train(agent, env_list, cfg, lr, 0, 1 + rep)
+            if rep:  # the first round compiles
+                secs[name].append(r.seconds)
+                steps[name].append(r.steps)
+    a, b = (statistics.median(secs[k]) for k in sides)
+    print(f"{args.preset}: one member's training iteration from {args.agent}, rate {lr}, "
+          f"median of {args.repeats} rounds, alternating")
+    for name in sides:
+        m = statistics.median(secs[name])
+        print(f"  {name:<12} {m:7.2f} s per iteration, {statistics.median(steps[name]):8.0f} env steps")
+    print(f"  changed ({', '.join(args.set)}) / the preset: {b / a:.2f}")
+
+
 def main(argv=None) -> None:
     cap_threads()
     p = argparse.ArgumentParser(prog="python benchmarks/bench.py")
@@ -692,6 +742,13 @@ def main(argv=None) -> None:
                     help="every member's rate (default 0.01: Swimmer's pools then merge in most iterations)")
     pf.add_argument("--top", type=int, default=25, help="functions listed per table")
     pf.set_defaults(func=profile)
+    tc = sub.add_parser("train-cost", help="a member's training iteration with a preset and with options changed")
+    tc.add_argument("--preset", default="humanoid")
+    tc.add_argument("--agent", default="results/humanoid-v5/best.npz", help="the agent every round trains from")
+    tc.add_argument("--set", action="append", default=[], metavar="OPTION=VALUE",
+                    help="an option to change, e.g. value_minibatch_steps=0 (repeatable)")
+    tc.add_argument("--repeats", type=int, default=5)
+    tc.set_defaults(func=train_cost)
     sm = sub.add_parser("simd", help="member throughput with the portable SIMD level vs all of the CPU")
     sm.add_argument("--cases", default="Swimmer-v5:linear,HalfCheetah-v5:linear,HalfCheetah-v5:mlp",
                     help="ENV:POLICY,... (default Swimmer linear, HalfCheetah linear and mlp)")

@@ -38,3 +38,20 @@ def test_profile_covers_every_member_after_the_warmup_and_lists_the_protocol():
         lines = [ln for ln in cumulative.splitlines() if where in ln]
         assert lines, f"{where} not among the top 40:\n{cumulative}"
         assert 0 < float(lines[0].split()[0]) <= total
+
+
+def test_train_cost_times_a_preset_beside_its_change_on_the_same_agent():
+    """``bench.py train-cost``: a committed agent trained with its preset and with an option
+    changed, in alternating rounds; an option the pool does not have is refused in one line."""
+    run = lambda *a: subprocess.run([sys.executable, SCRIPT, "train-cost", "--preset", "reacher",  # noqa: E731
+                                     "--agent", "results/reacher-v5/best.npz", *a],
+                                    cwd=ROOT, capture_output=True, text=True, timeout=300)
+    r = run("--set", "policy_epochs=3", "--repeats", "1")
+    assert r.returncode == 0, r.stderr[-2000:]
+    times = re.findall(r"^  (the preset|changed) +([\d.]+) s per iteration, +(\d+) env steps$", r.stdout, re.M)
+    assert [t[0] for t in times] == ["the preset", "changed"]
+    assert all(float(t[1]) > 0 and int(t[2]) == 100 * 50 for t in times)  # 100 episodes of Reacher's 50 steps
+    ratio = float(re.search(r"changed \(policy_epochs=3\) / the preset: ([\d.]+)", r.stdout).group(1))
+    assert ratio == pytest.approx(float(times[1][1]) / float(times[0][1]), abs=0.01)
+    bad = run("--set", "no_such_option=1")
+    assert bad.returncode != 0 and bad.stderr.strip() == "bench: unknown option 'no_such_option'"
