@@ -246,11 +246,7 @@ def policy_minibatches(params: dict, opt: OptState, x, u, adv, mask, logp_old, l
     moments are left as they are."""
     if passes < 1:
         return params, opt
-    if opt.t < 1:
-        raise ValueError("policy_minibatches follows an update: the step count must be at least 1")
-    if size < 1:
-        raise ValueError(f"a minibatch needs at least one step, got {size}")
-    order, count = minibatch_plan(mask, size, passes, rng)
+    order, count = _checked_plan("policy_minibatches", opt, mask, size, passes, rng)
     if count == 0:
         return params, opt
     def flat(a):
@@ -260,6 +256,16 @@ def policy_minibatches(params: dict, opt: OptState, x, u, adv, mask, logp_old, l
                                                  flat(mask), flat(logp_old), order, count, float(lr),
                                                  float(clip), spec))
     return (params | _as_numpy(p), OptState(opt.m | _as_numpy(m), opt.v | _as_numpy(v), opt.t + count))
+
+
+def _checked_plan(caller: str, opt: OptState, mask, size: int, passes: int, rng: np.random.Generator):
+    """:func:`minibatch_plan` for ``caller``, which must follow an update and take minibatches of a
+    step or more."""
+    if opt.t < 1:
+        raise ValueError(f"{caller} follows an update: the step count must be at least 1")
+    if size < 1:
+        raise ValueError(f"a minibatch needs at least one step, got {size}")
+    return minibatch_plan(mask, size, passes, rng)
 
 
 def _flat_steps(a, mask):
@@ -296,11 +302,7 @@ def value_minibatches(params: dict, opt: OptState, x, targets, mask, lr: float, 
     which the value network's time feature is a fraction of."""
     if passes < 1 or not spec.value:
         return params, opt
-    if opt.t < 1:
-        raise ValueError("value_minibatches follows an update: the step count must be at least 1")
-    if size < 1:
-        raise ValueError(f"a minibatch needs at least one step, got {size}")
-    order, count = minibatch_plan(mask, size, passes, rng)
+    order, count = _checked_plan("value_minibatches", opt, mask, size, passes, rng)
     if count == 0:
         return params, opt
     t_frac = time_fraction(np.asarray(x), np, limit or mask.shape[1])
