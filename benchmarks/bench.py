@@ -674,13 +674,12 @@ def train_cost(args) -> None:
             if rep:  # the first round compiles
                 secs[name].append(r.seconds)
                 steps[name].append(r.steps)
-    a, b = (statistics.median(secs[k]) for k in sides)
+    med = {k: statistics.median(secs[k]) for k in sides}
     print(f"{args.preset}: one member's training iteration from {args.agent}, rate {lr}, "
           f"median of {args.repeats} rounds, alternating")
     for name in sides:
-        m = statistics.median(secs[name])
-        print(f"  {name:<12} {m:7.2f} s per iteration, {statistics.median(steps[name]):8.0f} env steps")
-    print(f"  changed ({', '.join(args.set)}) / the preset: {b / a:.2f}")
+        print(f"  {name:<12} {med[name]:7.2f} s per iteration, {statistics.median(steps[name]):8.0f} env steps")
+    print(f"  changed ({', '.join(args.set)}) / the preset: {med['changed'] / med['the preset']:.2f}")
 
 
 def main(argv=None) -> None:

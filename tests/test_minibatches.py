@@ -91,29 +91,38 @@ def test_one_minibatch_of_the_whole_batch_is_a_plain_pass():
     assert mopt.t == wopt.t == 4.0
 
 
-def test_options_are_checked_and_older_pools_read_without_minibatches():
+@pytest.mark.parametrize("name", ["minibatch_steps", "value_minibatch_steps"])
+def test_minibatch_sizes_are_bounded_and_older_pools_read_without_them(name):
     d = PoolConfig().validate().to_json()
-    d.pop("minibatch_steps")
-    assert PoolConfig.from_json(d).minibatch_steps == 0
+    d.pop(name)
+    assert getattr(PoolConfig.from_json(d), name) == 0
     for bad in (-1, 10**6 + 1):
-        with pytest.raises(UsageError, match="--minibatch-steps"):
-            PoolConfig(minibatch_steps=bad).validate()
+        with pytest.raises(UsageError, match=f"--{name.replace('_', '-')} must be in"):
+            PoolConfig(**{name: bad}).validate()
+
+
+def test_options_are_checked_without_policy_epochs():
     with pytest.raises(UsageError, match="--minibatch-steps needs --policy-epochs above 1"):
         PoolConfig.merged({"minibatch_steps": 64}, None)
     assert PoolConfig.merged({"minibatch_steps": 64, "policy_epochs": 2}, None).minibatch_steps == 64
 
 
-def test_a_member_with_minibatches_moves_further_and_replays_exactly():
-    """On real Swimmer episodes: minibatches take more steps than whole-batch passes, from a
-    stream of their own, and the same seeds give the same bytes."""
-    cfg = PoolConfig(max_episode_steps=60, train_episodes=4, batch_episodes=4, policy_epochs=3).validate()
+def _swimmer_member_three_ways(change: dict, **options):
+    """A real Swimmer member's first iteration (4 episodes of 60 steps, one batch) with ``options``
+    and with ``change`` on top, twice: ``(start, whole, changed, changed again)``."""
+    cfg = PoolConfig(max_episode_steps=60, train_episodes=4, batch_episodes=4, **options).validate()
     env_list = [envs.make(cfg.env, {"max_episode_steps": 60})[0] for _ in range(4)]
     meta = AgentMeta("Swimmer-v5", {}, 60, 8, 2, (-1.0, -1.0), (1.0, 1.0), cfg.spec)
     start = Agent.initial(meta, seed=0)
-    whole = trainer.train(start, env_list, cfg, 0.01, 0, 0)
-    mini_cfg = dataclasses.replace(cfg, minibatch_steps=40)
-    mini = trainer.train(start, env_list, mini_cfg, 0.01, 0, 0)
-    again = trainer.train(start, env_list, mini_cfg, 0.01, 0, 0)
+    changed = dataclasses.replace(cfg, **change)
+    return (start, trainer.train(start, env_list, cfg, 0.01, 0, 0), trainer.train(start, env_list, changed, 0.01, 0, 0),
+            trainer.train(start, env_list, changed, 0.01, 0, 0))
+
+
+def test_a_member_with_minibatches_moves_further_and_replays_exactly():
+    """On real Swimmer episodes: minibatches take more steps than whole-batch passes, from a
+    stream of their own, and the same seeds give the same bytes."""
+    start, whole, mini, again = _swimmer_member_three_ways({"minibatch_steps": 40}, policy_epochs=3)
     assert mini.agent.to_bytes() == again.agent.to_bytes()
     assert mini.episode_returns == whole.episode_returns  # the same episodes: the shuffle has its own stream
     assert (whole.agent.opt_t, mini.agent.opt_t) == (3.0, 1.0 + 2 * 6)  # 240 steps in minibatches of 40
@@ -192,13 +201,7 @@ def test_one_value_minibatch_of_the_whole_batch_is_a_value_epoch():
     assert mopt.t == wopt.t == 2.0
 
 
-def test_value_minibatch_options_are_checked_and_older_pools_read_without_them():
-    d = PoolConfig().validate().to_json()
-    d.pop("value_minibatch_steps")
-    assert PoolConfig.from_json(d).value_minibatch_steps == 0
-    for bad in (-1, 10**6 + 1):
-        with pytest.raises(UsageError, match="--value-minibatch-steps must be in"):
-            PoolConfig(value_minibatch_steps=bad).validate()
+def test_value_minibatch_options_need_a_critic():
     need = "--value-minibatch-steps needs --baseline value and --value-epochs above 1"
     with pytest.raises(UsageError, match=need):
         PoolConfig.merged({"value_minibatch_steps": 64}, None)
@@ -212,15 +215,8 @@ def test_a_member_with_value_minibatches_fits_its_critic_further_and_replays_exa
     """On real Swimmer episodes: the critic's minibatches take more steps than its whole-batch
     epochs, from a stream of their own (the episodes and the policy's step are the same), and the
     same seeds give the same bytes."""
-    cfg = PoolConfig(max_episode_steps=60, train_episodes=4, batch_episodes=4, baseline="value",
-                     value_epochs=3).validate()
-    env_list = [envs.make(cfg.env, {"max_episode_steps": 60})[0] for _ in range(4)]
-    meta = AgentMeta("Swimmer-v5", {}, 60, 8, 2, (-1.0, -1.0), (1.0, 1.0), cfg.spec)
-    start = Agent.initial(meta, seed=0)
-    whole = trainer.train(start, env_list, cfg, 0.01, 0, 0)
-    mini_cfg = dataclasses.replace(cfg, value_minibatch_steps=40)
-    mini = trainer.train(start, env_list, mini_cfg, 0.01, 0, 0)
-    again = trainer.train(start, env_list, mini_cfg, 0.01, 0, 0)
+    start, whole, mini, again = _swimmer_member_three_ways({"value_minibatch_steps": 40}, baseline="value",
+                                                           value_epochs=3)
     assert mini.agent.to_bytes() == again.agent.to_bytes()
     assert mini.episode_returns == whole.episode_returns
     assert whole.agent.opt_t == mini.agent.opt_t == 1.0  # the critic's steps leave the count alone

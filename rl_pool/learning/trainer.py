@@ -130,12 +130,13 @@ def train(agent: Agent, envs, cfg: PoolConfig, lr: float, member: int, iteration
         elif cfg.policy_epochs > 1:
             params, opt = learner.policy_epochs(params, opt, x, batch.u, adv, batch.mask, logp_old, lr,
                                                 cfg.clip, cfg.policy_epochs - 1, spec)
-        if spec.value and cfg.value_epochs > 1 and cfg.value_minibatch_steps:
-            params, opt = learner.value_minibatches(params, opt, x, targets, batch.mask, lr, cfg.value_epochs - 1,
-                                                    cfg.value_minibatch_steps, value_shuffle, spec, limit=T)
-        elif spec.value and cfg.value_epochs > 1:
-            params, opt = learner.fit_value(params, opt, x, targets, batch.mask, lr, cfg.value_epochs - 1, spec,
-                                            limit=T)
+        if spec.value and cfg.value_epochs > 1:
+            if cfg.value_minibatch_steps:
+                params, opt = learner.value_minibatches(params, opt, x, targets, batch.mask, lr, cfg.value_epochs - 1,
+                                                        cfg.value_minibatch_steps, value_shuffle, spec, limit=T)
+            else:
+                params, opt = learner.fit_value(params, opt, x, targets, batch.mask, lr, cfg.value_epochs - 1, spec,
+                                                limit=T)
         norm = normalizer.update(norm, batch.obs[batch.mask > 0])
         steps += batch.steps
         ep_returns.extend(float(r) for r in batch.returns)

@@ -85,9 +85,11 @@ def values(params, x, spec: policy.PolicySpec, xp=np, limit: int | None = None):
     return policy.value(params, x, time_fraction(x, xp, limit), spec, xp)
 
 
-def value_loss(params, x, targets, mask, spec: policy.PolicySpec, limit: int | None = None):
-    """``(1 / 2n) * sum mask * (V - y)^2``: the value network's part of ``-J``."""
-    err = values(params, x, spec, jnp, limit) - targets
+def value_loss(params, x, targets, mask, spec: policy.PolicySpec, limit: int | None = None, t_frac=None):
+    """``(1 / 2n) * sum mask * (V - y)^2``: the value network's part of ``-J``. ``t_frac``: the steps'
+    time inputs, for steps that are not laid out as a padded batch (by default from ``x`` and ``limit``)."""
+    v = values(params, x, spec, jnp, limit) if t_frac is None else policy.value(params, x, t_frac, spec, jnp)
+    err = v - targets
     return 0.5 * (err * err * mask).sum() / jnp.maximum(mask.sum(), 1.0)
 
 
@@ -249,9 +251,7 @@ def policy_minibatches(params: dict, opt: OptState, x, u, adv, mask, logp_old, l
     order, count = _checked_plan("policy_minibatches", opt, mask, size, passes, rng)
     if count == 0:
         return params, opt
-    def flat(a):
-        return _flat_steps(a, mask)
-
+    flat = partial(_flat_steps, mask=mask)
     p, m, v = jax.device_get(_policy_minibatches(params, opt.m, opt.v, opt.t, flat(x), flat(u), flat(adv),
                                                  flat(mask), flat(logp_old), order, count, float(lr),
                                                  float(clip), spec))
@@ -281,12 +281,10 @@ def _value_minibatches(params, m, v, t, x, t_frac, targets, mask, order, count, 
     names = [k for k in params if k.startswith(policy.VALUE_PREFIX)]
     sub = lambda d: {k: d[k] for k in names}  # noqa: E731
 
-    def loss(q, idx):
-        err = policy.value(params | q, x[idx], t_frac[idx], spec, jnp) - targets[idx]
-        return 0.5 * (err * err * mask[idx]).sum() / jnp.maximum(mask[idx].sum(), 1.0)
-
     def step(i, carry):
-        g = jax.grad(lambda q: -loss(q, order[i]))(carry[0])  # up -loss, as :func:`fit_value`
+        idx = order[i]  # up -loss, as :func:`fit_value`
+        g = jax.grad(lambda q: -value_loss(params | q, x[idx], targets[idx], mask[idx], spec,
+                                           t_frac=t_frac[idx]))(carry[0])
         return _adam_ascent(*carry, g, t, lr)
 
     return jax.lax.fori_loop(0, count, step, (sub(params), sub(m), sub(v)))
