@@ -205,14 +205,32 @@ def test_hoppers_sharpening_at_reverts_leaves_when_there_are_no_reverts_or_no_ex
 
 
 def test_ants_extra_passes_leave_with_another_step_rule(tmp_path):
-    """``--preset ant`` takes 10 passes over each batch, which need Adam: with ``--optimizer
-    normalized`` the pool is made without them (not refused for an option the user never gave);
-    given explicitly, they are refused."""
-    assert _launch_config("ant", tmp_path)[1].policy_epochs == 10
+    """``--preset ant`` takes 10 passes over each batch in minibatches, which need Adam: with
+    ``--optimizer normalized`` the pool is made without them (not refused for an option the user
+    never gave); given explicitly, they are refused."""
+    cfg = _launch_config("ant", tmp_path)[1]
+    assert (cfg.policy_epochs, cfg.minibatch_steps) == (10, 64)
     cfg = _launch_config("ant", tmp_path, "--optimizer", "normalized")[1]
-    assert (cfg.optimizer, cfg.policy_epochs) == ("normalized", 1)
+    assert (cfg.optimizer, cfg.policy_epochs, cfg.minibatch_steps) == ("normalized", 1, 0)
     with pytest.raises(UsageError, match="--policy-epochs above 1 needs --optimizer adam"):
         _launch_config("ant", tmp_path, "--optimizer", "normalized", "--policy-epochs", "3")
+
+
+@pytest.mark.parametrize("name", ["ant", "humanoid"])
+def test_a_presets_minibatches_leave_with_the_passes_or_the_critic_they_serve(name, tmp_path):
+    """The policy's minibatches go with ``--policy-epochs 1``, the critic's with another baseline or
+    ``--value-epochs 1``, each only where the preset gave them; given explicitly, they are refused."""
+    cfg = _launch_config(name, tmp_path)[1]
+    assert (cfg.baseline, cfg.minibatch_steps, cfg.value_minibatch_steps) == ("value", 64, 64)
+    cfg = _launch_config(name, tmp_path, "--policy-epochs", "1")[1]
+    assert (cfg.policy_epochs, cfg.minibatch_steps, cfg.value_minibatch_steps) == (1, 0, 64)
+    cfg = _launch_config(name, tmp_path, "--baseline", "linear")[1]
+    assert (cfg.baseline, cfg.minibatch_steps, cfg.value_minibatch_steps) == ("linear", 64, 0)
+    assert _launch_config(name, tmp_path, "--value-epochs", "1")[1].value_minibatch_steps == 0
+    with pytest.raises(UsageError, match="--minibatch-steps needs --policy-epochs above 1"):
+        _launch_config(name, tmp_path, "--policy-epochs", "1", "--minibatch-steps", "32")
+    with pytest.raises(UsageError, match="--value-minibatch-steps needs --baseline value"):
+        _launch_config(name, tmp_path, "--baseline", "linear", "--value-minibatch-steps", "32")
 
 
 @pytest.mark.parametrize(("extra", "sharpen"), [

@@ -31,10 +31,10 @@ PRESETS: dict[str, dict] = {
                  "policy_epochs": 10, "selection": "branches", "revert_after": 20,
                  "eval_episodes": 10, "train_episodes": 40, "batch_episodes": 20, "policy": "mlp",
                  "hidden": "64,64", "init_shape": 20.0, "learning_rates": [0.001, 0.003]},
-    "ant": {"env": "Ant-v5", "gamma": 0.99, "baseline": "linear", "gae_lambda": 0.95, "policy_epochs": 10,
-            "eval_episodes": 10,
+    "ant": {"env": "Ant-v5", "gamma": 0.99, "baseline": "value", "gae_lambda": 0.95, "policy_epochs": 10,
+            "minibatch_steps": 64, "value_minibatch_steps": 64, "eval_episodes": 10,
             "revert_after": 20, "best_score": "mean", "policy": "mlp", "hidden": "64,64", "init_shape": 20.0,
-            "learning_rates": [0.001, 0.003]},
+            "learning_rates": [0.0001, 0.0003]},
     "inverted-double-pendulum": {"env": "InvertedDoublePendulum-v5", "gamma": 0.99, "baseline": "linear",
                                  "gae_lambda": 0.95, "policy_epochs": 10, "eval_episodes": 30, "policy": "mlp",
                                  "hidden": "64,64", "init_shape": 20.0, "parent_patience": 3, "revert_after": 20,
@@ -123,14 +123,19 @@ def needless(preset: dict, value) -> set[str]:
     """The preset's options that the pool's other settings (``value(name)``: the final value of an
     option) leave nothing to do, and that the pool's checks would refuse for it: sharpening at
     reverts (``revert_sharpen``, or ``merged_revert_sharpen`` in pools that merge) without
-    reverts or without the ``exp`` link, and extra passes over each batch (``policy_epochs``)
-    with a step rule other than Adam."""
+    reverts or without the ``exp`` link, extra passes over each batch (``policy_epochs``) with a
+    step rule other than Adam, the policy's minibatches (``minibatch_steps``) without those passes,
+    and the critic's (``value_minibatch_steps``) without a critic or its extra epochs."""
     out = set()
     sharpens = "revert_sharpen" in preset or "merged_revert_sharpen" in preset
     if sharpens and (not value("revert_after") or value("link") != "exp"):
         out.add("revert_sharpen")
     if "policy_epochs" in preset and value("optimizer") != "adam":
         out.add("policy_epochs")
+    if "minibatch_steps" in preset and ("policy_epochs" in out or value("policy_epochs") < 2):
+        out.add("minibatch_steps")
+    if "value_minibatch_steps" in preset and (value("baseline") != "value" or value("value_epochs") < 2):
+        out.add("value_minibatch_steps")
     return out
 
 
