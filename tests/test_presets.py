@@ -89,6 +89,30 @@ def test_each_committed_run_is_its_preset(name, tmp_path):
             assert json.loads(json.dumps(getattr(cfg, f.name))) == made[f.name], f.name
 
 
+#: Committed runs a preset's change replaced, and the options docs/usage.md gives to resume such a
+#: pool with the preset now.
+REPLACED = [
+    ("ant", "ant-v5/screening/policy-epochs10-seed0-20min", ("--baseline", "linear", "--minibatch-steps", "0")),
+    ("walker2d", "walker2d-v5/screening/policy-epochs10-gae0.95-linear-seed0-20min",
+     ("--baseline", "linear", "--minibatch-steps", "0")),
+]
+
+
+@pytest.mark.parametrize("name, where, resume", REPLACED)
+def test_a_pool_of_the_preset_before_resumes_with_the_options_the_docs_give(name, where, resume, tmp_path):
+    with open(os.path.join(os.path.dirname(__file__), "..", "results", where, "pool.json")) as fh:
+        made = json.load(fh)
+    _, now = _launch_config(name, tmp_path / "now", "--seed", str(made["seed"]))
+    _, cfg = _launch_config(name, tmp_path / "before", "--seed", str(made["seed"]), *resume)
+    assert any(f.name in made and getattr(now, f.name) != made[f.name] for f in fields(now))  # it did change
+    for f in fields(cfg):
+        if f.name in made and f.name != "max_episode_steps":
+            assert json.loads(json.dumps(getattr(cfg, f.name))) == made[f.name], f.name
+    with open(os.path.join(os.path.dirname(__file__), "..", "docs", "usage.md")) as fh:
+        usage = " ".join(fh.read().split())
+    assert f"`{name}` pool made before" in usage and " ".join(resume) in usage
+
+
 @pytest.mark.parametrize("doc", ["README.md", "docs/usage.md"])
 def test_every_preset_is_in_the_docs_tables(doc):
     """The presets tables of the README and the usage page name every preset and its env."""
