@@ -75,18 +75,27 @@ COMMITTED = {"halfcheetah": "halfcheetah-v5", "hopper": "hopper-v5", "walker2d":
              "humanoid-standup": "humanoidstandup-v5"}
 
 
+def _results_pool(where):
+    with open(os.path.join(os.path.dirname(__file__), "..", "results", where, "pool.json")) as fh:
+        return json.load(fh)
+
+
+def _settings_unlike(cfg, made):
+    """The settings of ``cfg`` that a made pool's ``pool.json`` holds otherwise (max_episode_steps is 0
+    in a config: the env's own, resolved when the pool is made)."""
+    return [f.name for f in fields(cfg) if f.name in made and f.name != "max_episode_steps"
+            and json.loads(json.dumps(getattr(cfg, f.name))) != made[f.name]]
+
+
 @pytest.mark.parametrize("name", sorted(COMMITTED))
 def test_each_committed_run_is_its_preset(name, tmp_path):
     """The pool.json of ``results/<task>/`` holds the pool-wide settings ``--preset NAME`` makes for
     that run's seed and size: a preset changed without its committed run redone fails here (the
     learning rates are members' settings, in command.txt, not pool.json)."""
     assert set(COMMITTED) == set(presets.PRESETS) - {"swimmer"}
-    with open(os.path.join(os.path.dirname(__file__), "..", "results", COMMITTED[name], "pool.json")) as fh:
-        made = json.load(fh)
+    made = _results_pool(COMMITTED[name])
     _, cfg = _launch_config(name, tmp_path, "--seed", str(made["seed"]), "--pool-size", str(made["pool_size"]))
-    for f in fields(cfg):
-        if f.name in made and f.name != "max_episode_steps":  # 0 in a config: the env's own, resolved when made
-            assert json.loads(json.dumps(getattr(cfg, f.name))) == made[f.name], f.name
+    assert _settings_unlike(cfg, made) == []
 
 
 #: Committed runs a preset's change replaced, and the options docs/usage.md gives to resume such a
@@ -100,16 +109,11 @@ REPLACED = [
 
 @pytest.mark.parametrize("name, where, resume", REPLACED)
 def test_a_pool_of_the_preset_before_resumes_with_the_options_the_docs_give(name, where, resume, tmp_path):
-    with open(os.path.join(os.path.dirname(__file__), "..", "results", where, "pool.json")) as fh:
-        made = json.load(fh)
-    def differ(cfg):  # max_episode_steps is 0 in a config: the env's own, resolved when the pool is made
-        return [f.name for f in fields(cfg) if f.name in made and f.name != "max_episode_steps"
-                and json.loads(json.dumps(getattr(cfg, f.name))) != made[f.name]]
-
+    made = _results_pool(where)
     _, now = _launch_config(name, tmp_path / "now", "--seed", str(made["seed"]))
     _, cfg = _launch_config(name, tmp_path / "before", "--seed", str(made["seed"]), *resume)
-    assert differ(now)  # the preset did change
-    assert differ(cfg) == []
+    assert _settings_unlike(now, made)  # the preset did change
+    assert _settings_unlike(cfg, made) == []
     with open(os.path.join(os.path.dirname(__file__), "..", "docs", "usage.md")) as fh:
         usage = " ".join(fh.read().split())
     assert f"`{name}` pool made before" in usage and " ".join(resume) in usage
