@@ -104,6 +104,8 @@ REPLACED = [
     ("ant", "ant-v5/screening/policy-epochs10-seed0-20min", ("--baseline", "linear", "--minibatch-steps", "0")),
     ("walker2d", "walker2d-v5/screening/policy-epochs10-gae0.95-linear-seed0-20min",
      ("--baseline", "linear", "--minibatch-steps", "0")),
+    ("pusher", "pusher-v5/screening/anneal500-seed0-20min",
+     ("--gamma", "1", "--baseline", "time", "--gae-lambda", "1", "--policy-epochs", "1")),
 ]
 
 
