@@ -54,10 +54,10 @@ def test_preset_batch_size_goes_with_its_own_train_episodes(name, tmp_path):
     assert (cfg.train_episodes, cfg.batch_episodes) == (chosen["train_episodes"], chosen["batch_episodes"])
 
 
-@pytest.mark.parametrize("size,want", [(2, [0.001, 0.003]), (8, [0.001] + [0.003] * 7), (1, [0.003])])
+@pytest.mark.parametrize("size,want", [(2, [0.0001, 0.0003]), (8, [0.0001] + [0.0003] * 7), (1, [0.0003])])
 def test_a_preset_grown_to_more_members_keeps_its_rates(size, want, tmp_path, monkeypatch):
     # the first member at the preset's first (guard) rate, the rest at its last; never the
-    # linear defaults (0.01, then 0.1), ten to a hundred times the MLP preset's rates
+    # linear defaults (0.01, then 0.1), a hundred times the MLP preset's rates and more
     from rl_pool.commands import launch
 
     seen = {}
@@ -106,6 +106,9 @@ REPLACED = [
      ("--baseline", "linear", "--minibatch-steps", "0")),
     ("pusher", "pusher-v5/screening/anneal500-seed0-20min",
      ("--gamma", "1", "--baseline", "time", "--gae-lambda", "1", "--policy-epochs", "1")),
+    ("halfcheetah", "halfcheetah-v5/screening/momentum-eight-members-seed0-20min",
+     ("--pool-size", "8", "--gamma", "1", "--baseline", "time", "--gae-lambda", "1", "--policy-epochs", "1",
+      "--batch-episodes", "5")),
 ]
 
 
@@ -144,7 +147,8 @@ def test_a_preset_gives_its_pick_a_final_round_and_the_options_that_win(tmp_path
     assert launch_pick(*idp, "--pick-finalists", "2", "--pick-final-episodes", "50") == {
         "pick_finalists": 2, "pick_final_episodes": 50}
     assert launch_pick(*idp, "--no-pick") == {}  # the preset's final round goes with its pick
-    assert launch_pick("--preset", "halfcheetah") == {"pick_finalists": 0, "pick_final_episodes": 100}
+    assert launch_pick("--preset", "halfcheetah") == {"pick_finalists": 6, "pick_final_episodes": 100}
+    assert launch_pick("--preset", "swimmer", "--pick") == {"pick_finalists": 0, "pick_final_episodes": 100}
     with pytest.raises(UsageError, match="--pick-finalists sets the final round of a pick: add --pick"):
         launch_pick(*idp, "--no-pick", "--pick-finalists", "3")
     # the preset's dict is the pool's, never shared with the parsed arguments
@@ -155,7 +159,7 @@ def test_a_preset_gives_its_pick_a_final_round_and_the_options_that_win(tmp_path
 
 
 @pytest.mark.parametrize("extra, batch", [
-    ((), 10),  # the preset's 2 members: min(10, E)
+    ((), 10),  # 2 members: min(10, E)
     (("--pool-size", "2"), 10),
     (("--pool-size", "3"), 5), (("--pool-size", "8"), 5), (("--pool-size", "16"), 5),  # merged pools
     (("--pool-size", "8", "--merge", "none"), 10), (("--pool-size", "8", "--merge", "mean"), 10),
@@ -163,9 +167,19 @@ def test_a_preset_gives_its_pick_a_final_round_and_the_options_that_win(tmp_path
     (("--pool-size", "8", "--train-episodes", "30"), 10),  # another E: the default min(10, E)
     (("--pool-size", "8", "--train-episodes", "20"), 5),  # the preset's own E (the default), given
 ])
-def test_halfcheetah_batch_halves_in_pools_that_merge(extra, batch, tmp_path):
-    _, cfg = _launch_config("halfcheetah", tmp_path, *extra)
+def test_a_merged_batch_goes_to_pools_that_merge(extra, batch, tmp_path, monkeypatch):
+    monkeypatch.setitem(presets.PRESETS, "merged-batch", {
+        "env": "HalfCheetah-v5", "policy": "mlp", "hidden": "64,64", "learning_rates": [0.001, 0.003],
+        "merged_batch_episodes": 5, "merged_merge": "momentum"})
+    _, cfg = _launch_config("merged-batch", tmp_path, *extra)
     assert cfg.batch_episodes == batch
+
+
+@pytest.mark.parametrize("extra", [(), ("--pool-size", "8"), ("--pool-size", "16", "--merge", "none")])
+def test_halfcheetah_steps_on_two_episodes_at_every_pool_size(extra, tmp_path):
+    # PPO's rollout of about 2000 steps: 10 clipped updates per iteration, alone or merged
+    _, cfg = _launch_config("halfcheetah", tmp_path, *extra)
+    assert (cfg.train_episodes, cfg.batch_episodes, cfg.baseline, cfg.policy_epochs) == (20, 2, "value", 10)
 
 
 @pytest.mark.parametrize("extra,merge", [
@@ -176,7 +190,6 @@ def test_halfcheetah_batch_halves_in_pools_that_merge(extra, batch, tmp_path):
 def test_halfcheetah_merges_with_momentum_in_pools_of_three_or_more(extra, merge, tmp_path):
     _, cfg = _launch_config("halfcheetah", tmp_path, *extra)
     assert cfg.merge == merge
-    assert cfg.batch_episodes == (5 if merge != "none" and cfg.pool_size >= 3 else 10)
 
 
 def test_merged_batch_only_where_a_preset_has_one():

@@ -20,10 +20,11 @@ from rl_pool.protocol.selection import RULES_OF_THREE
 #: it, is in docs/results.md (one section per task) and the dated notebook, docs/notebook.md.
 PRESETS: dict[str, dict] = {
     "swimmer": {"env": "Swimmer-v5", "learning_rates": [0.01, 0.1]},
-    "halfcheetah": {"env": "HalfCheetah-v5", "policy": "mlp", "hidden": "64,64", "init_shape": 20.0,
-                    "learning_rates": [0.001, 0.003], "merged_batch_episodes": 5, "merged_merge": "momentum",
-                    "merged_parent_patience": 3, "merged_revert_after": 20, "merged_revert_sharpen": 3.0,
-                    "pick": True},
+    "halfcheetah": {"env": "HalfCheetah-v5", "gamma": 0.99, "baseline": "value", "gae_lambda": 0.95,
+                    "policy_epochs": 10, "minibatch_steps": 64, "value_minibatch_steps": 64, "batch_episodes": 2,
+                    "policy": "mlp", "hidden": "64,64", "init_shape": 20.0, "learning_rates": [0.0001, 0.0003],
+                    "merged_merge": "momentum", "merged_parent_patience": 3, "merged_revert_after": 20,
+                    "merged_revert_sharpen": 3.0, "pick": True, "pick_finalists": 6},
     "hopper": {"env": "Hopper-v5", "reward_shift": 1.0, "selection": "branches", "revert_after": 20,
                "revert_sharpen": 3.0, "eval_episodes": 10, "train_episodes": 40, "batch_episodes": 20,
                "learning_rates": [0.01, 0.03]},
