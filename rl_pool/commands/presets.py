@@ -18,24 +18,26 @@ from rl_pool.protocol.selection import RULES_OF_THREE
 
 #: Each preset was chosen by measured runs; why each value is there, with the runs that decided
 #: it, is in docs/results.md (one section per task) and the dated notebook, docs/notebook.md.
+#: Humanoid's learner, which five presets share: a discount of 0.99, generalised advantage estimation on a
+#: learned critic, nine more passes over each batch up PPO's clipped surrogate in minibatches of 64 steps,
+#: and the critic's epochs in minibatches too.
+CRITIC_PPO = {"gamma": 0.99, "baseline": "value", "gae_lambda": 0.95, "policy_epochs": 10, "minibatch_steps": 64,
+              "value_minibatch_steps": 64}
+
 PRESETS: dict[str, dict] = {
     "swimmer": {"env": "Swimmer-v5", "learning_rates": [0.01, 0.1]},
-    "halfcheetah": {"env": "HalfCheetah-v5", "gamma": 0.99, "baseline": "value", "gae_lambda": 0.95,
-                    "policy_epochs": 10, "minibatch_steps": 64, "value_minibatch_steps": 64, "batch_episodes": 2,
+    "halfcheetah": {"env": "HalfCheetah-v5", **CRITIC_PPO, "batch_episodes": 2,
                     "policy": "mlp", "hidden": "64,64", "init_shape": 20.0, "learning_rates": [0.0001, 0.0003],
                     "merged_merge": "momentum", "merged_parent_patience": 3, "merged_revert_after": 20,
                     "merged_revert_sharpen": 3.0, "pick": True, "pick_finalists": 6},
     "hopper": {"env": "Hopper-v5", "reward_shift": 1.0, "selection": "branches", "revert_after": 20,
                "revert_sharpen": 3.0, "eval_episodes": 10, "train_episodes": 40, "batch_episodes": 20,
                "learning_rates": [0.01, 0.03]},
-    "walker2d": {"env": "Walker2d-v5", "reward_shift": 1.0, "gamma": 0.99, "baseline": "value", "gae_lambda": 0.95,
-                 "policy_epochs": 10, "minibatch_steps": 64, "value_minibatch_steps": 64, "selection": "branches",
+    "walker2d": {"env": "Walker2d-v5", "reward_shift": 1.0, **CRITIC_PPO, "selection": "branches",
                  "revert_after": 20, "eval_episodes": 10, "train_episodes": 40, "batch_episodes": 20,
                  "policy": "mlp", "hidden": "64,64", "init_shape": 20.0, "learning_rates": [0.0001, 0.0003]},
-    "ant": {"env": "Ant-v5", "gamma": 0.99, "baseline": "value", "gae_lambda": 0.95, "policy_epochs": 10,
-            "minibatch_steps": 64, "value_minibatch_steps": 64, "eval_episodes": 10,
-            "revert_after": 20, "best_score": "mean", "policy": "mlp", "hidden": "64,64", "init_shape": 20.0,
-            "learning_rates": [0.0001, 0.0003]},
+    "ant": {"env": "Ant-v5", **CRITIC_PPO, "eval_episodes": 10, "revert_after": 20, "best_score": "mean",
+            "policy": "mlp", "hidden": "64,64", "init_shape": 20.0, "learning_rates": [0.0001, 0.0003]},
     "inverted-double-pendulum": {"env": "InvertedDoublePendulum-v5", "gamma": 0.99, "baseline": "linear",
                                  "gae_lambda": 0.95, "policy_epochs": 10, "eval_episodes": 30, "policy": "mlp",
                                  "hidden": "64,64", "init_shape": 20.0, "parent_patience": 3, "revert_after": 20,
@@ -46,12 +48,10 @@ PRESETS: dict[str, dict] = {
                 "learning_rates": [0.001, 0.003]},
     "inverted-pendulum": {"env": "InvertedPendulum-v5", "selection": "branches", "revert_after": 20,
                           "eval_episodes": 10, "learning_rates": [0.01, 0.1]},
-    "pusher": {"env": "Pusher-v5", "gamma": 0.99, "baseline": "value", "gae_lambda": 0.95, "policy_epochs": 10,
-               "minibatch_steps": 64, "value_minibatch_steps": 64, "eval_episodes": 20, "train_episodes": 100,
+    "pusher": {"env": "Pusher-v5", **CRITIC_PPO, "eval_episodes": 20, "train_episodes": 100,
                "batch_episodes": 50, "policy": "mlp", "hidden": "64,64", "init_shape": 20.0, "rate_anneal": 500,
                "learning_rates": [0.0001, 0.0003]},
-    "humanoid": {"env": "Humanoid-v5", "gamma": 0.99, "baseline": "value", "gae_lambda": 0.95, "policy_epochs": 10,
-                 "minibatch_steps": 64, "value_minibatch_steps": 64, "selection": "branches",
+    "humanoid": {"env": "Humanoid-v5", **CRITIC_PPO, "selection": "branches",
                  "revert_after": 20, "eval_episodes": 10, "train_episodes": 40, "batch_episodes": 20, "policy": "mlp",
                  "hidden": "64,64", "init_shape": 20.0, "learning_rates": [0.0001, 0.0003]},
     "humanoid-standup": {"env": "HumanoidStandup-v5", "gamma": 0.99, "baseline": "linear", "gae_lambda": 0.95,
