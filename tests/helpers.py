@@ -169,6 +169,20 @@ def racer(root: str, names: int, me: int, barrier, out) -> None:
     out.put((me, results))
 
 
+def tree_remover(trees: list[str], barrier, out, remove=None) -> None:
+    """Remove each of ``trees`` at the same moment as the other removers (``fsutil.remove_tree``,
+    or ``remove``); puts the first exception's ``repr``, or None."""
+    remove = remove or fsutil.remove_tree
+    try:
+        for t in trees:
+            barrier.wait(timeout=60)  # a remover that failed breaks it for the others
+            remove(t)
+    except Exception as exc:
+        out.put(repr(exc))
+        return
+    out.put(None)
+
+
 def like_agent(paths):
     return deposits.load_selected_agent(paths, 0)
 

@@ -19,7 +19,7 @@ import pytest
 from rl_pool.protocol import claim
 
 from .conftest import ROOT, SHORT, spawn
-from .helpers import racer
+from .helpers import racer, tree_remover
 from .seaweed import Seaweed, unavailable
 
 # real processes on a real cluster: out of the fast tiers (-m 'not multiprocess'); -m seaweedfs runs it alone
@@ -40,11 +40,13 @@ def seaweed(tmp_path_factory):
 
 
 def _same_dir(sw, name):
-    """``name`` created through mount A, and its paths through mounts A and B."""
+    """``name`` created through mount A, and its paths through mounts A and B once both mounts
+    show it (a fresh directory can be missing for a moment through either, its own mount too)."""
     a, b = (os.path.join(m, name) for m in sw.mounts)
     os.makedirs(a)
     deadline = time.time() + 10
-    while not os.path.isdir(b) and time.time() < deadline:
+    while not (os.path.isdir(a) and os.path.isdir(b)):
+        assert time.time() < deadline, f"{name} made through mount A is not on both mounts after 10 s"
         time.sleep(0.01)
     return a, b
 
@@ -90,6 +92,40 @@ def test_doctor_on_both_mounts_at_once_finds_the_link_race_and_exclusive_renames
     assert any("not exclusive" in n for n in ra["notes"])
     assert ra["safe"] and rb["safe"]
     assert _eventually(lambda: os.listdir(a) == []), os.listdir(a)  # the meeting place is gone
+
+
+def _tree(root: str, dirs: int = 8, files: int = 3) -> None:
+    for k in range(dirs):
+        sub = os.path.join(root, f"d{k}", "inner")
+        os.makedirs(sub)
+        for j in range(files):
+            with open(os.path.join(sub, f"f{j}"), "wb") as fh:
+                fh.write(b"x")
+
+
+def test_both_mounts_removing_one_tree_at_once_neither_fails_and_it_is_gone(seaweed):
+    # The doctor's two runs both remove their meeting place when they are done; on these mounts
+    # plain rmtree(ignore_errors=True) raised FileNotFoundError in Python 3.11 when the other
+    # mount removed the same tree under it.
+    a, b = _same_dir(seaweed, "trees")
+    rounds = 12
+    for r in range(rounds):
+        _tree(os.path.join(a, f"t{r}"))
+    assert _eventually(lambda: all(os.path.isdir(os.path.join(b, f"t{r}", "d7", "inner"))
+                                   for r in range(rounds)), timeout=10)
+    ctx = mp.get_context("spawn")
+    barrier, out = ctx.Barrier(4), ctx.Queue()
+    trees = [[os.path.join(root, f"t{r}") for r in range(rounds)] for root in (a, b, a, b)]
+    procs = [ctx.Process(target=tree_remover, args=(t, barrier, out)) for t in trees]
+    for p in procs:
+        p.start()
+    errors = [out.get(timeout=120) for _ in procs]
+    for p in procs:
+        p.join(timeout=30)
+        assert p.exitcode == 0
+    assert errors == [None] * len(procs)
+    assert _eventually(lambda: os.listdir(a) == [] and os.listdir(b) == [], timeout=10), (os.listdir(a),
+                                                                                         os.listdir(b))
 
 
 def test_claims_racing_from_both_mounts_have_one_winner_that_both_mounts_read(seaweed):

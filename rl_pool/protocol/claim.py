@@ -85,7 +85,6 @@ import errno
 import hashlib
 import logging
 import os
-import shutil
 import stat
 import time
 
@@ -374,7 +373,7 @@ def remove_proposal(path: str) -> None:
     except OSError:
         return
     if stat.S_ISDIR(st.st_mode):
-        shutil.rmtree(path, ignore_errors=True)
+        fsutil.remove_tree(path)
     else:
         try:
             os.unlink(path)

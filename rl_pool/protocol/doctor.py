@@ -25,7 +25,6 @@ import argparse
 import errno
 import json
 import os
-import shutil
 import sys
 import time
 
@@ -223,7 +222,7 @@ def local_checks(d: str, required_only: bool = False) -> list[dict]:
         check("link create-once", False, link_once)
         check("O_EXCL create-once", False, excl_once)
     finally:
-        shutil.rmtree(s, ignore_errors=True)
+        fsutil.remove_tree(s)
     return out
 
 
