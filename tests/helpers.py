@@ -169,14 +169,13 @@ def racer(root: str, names: int, me: int, barrier, out) -> None:
     out.put((me, results))
 
 
-def tree_remover(trees: list[str], barrier, out, remove=None) -> None:
-    """Remove each of ``trees`` at the same moment as the other removers (``fsutil.remove_tree``,
-    or ``remove``); puts the first exception's ``repr``, or None."""
-    remove = remove or fsutil.remove_tree
+def tree_remover(trees: list[str], barrier, out) -> None:
+    """Remove each of ``trees`` (``fsutil.remove_tree``) at the same moment as the other removers;
+    puts the first exception's ``repr``, or None."""
     try:
         for t in trees:
             barrier.wait(timeout=60)  # a remover that failed breaks it for the others
-            remove(t)
+            fsutil.remove_tree(t)
     except Exception as exc:
         out.put(repr(exc))
         return
