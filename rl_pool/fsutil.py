@@ -35,7 +35,6 @@ import errno
 import json
 import math
 import os
-import shutil
 import socket
 import stat
 import threading
@@ -117,21 +116,6 @@ def _unlink_quiet(path: str) -> None:
         os.unlink(path)
     except OSError:
         pass
-
-
-def remove_tree(path: str, tries: int = 5) -> None:
-    """Remove a directory tree, quiet if it is gone or goes while this runs.
-
-    ``shutil.rmtree(ignore_errors=True)`` alone can still raise in Python 3.11: the ``fstat`` of a
-    subdirectory it has just opened is not covered, and on a FUSE mount (SeaweedFS) that ``fstat``
-    fails with ENOENT when another client removes the same tree at the same moment. Each try
-    removes what is left; what another client removed counts as removed."""
-    for _ in range(tries):
-        try:
-            shutil.rmtree(path, ignore_errors=True)
-        except FileNotFoundError:
-            continue
-        return
 
 
 def atomic_write(path, data: bytes, sync_dir: bool = True, durable: bool = True) -> None:

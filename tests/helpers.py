@@ -170,12 +170,12 @@ def racer(root: str, names: int, me: int, barrier, out) -> None:
 
 
 def tree_remover(trees: list[str], barrier, out) -> None:
-    """Remove each of ``trees`` (``fsutil.remove_tree``) at the same moment as the other removers;
+    """Remove each of ``trees`` (``claim.remove_tree``) at the same moment as the other removers;
     puts the first exception's ``repr``, or None."""
     try:
         for t in trees:
             barrier.wait(timeout=60)  # a remover that failed breaks it for the others
-            fsutil.remove_tree(t)
+            claim.remove_tree(t)
     except Exception as exc:
         out.put(repr(exc))
         return

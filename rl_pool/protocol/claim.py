@@ -85,6 +85,7 @@ import errno
 import hashlib
 import logging
 import os
+import shutil
 import stat
 import time
 
@@ -366,6 +367,21 @@ def _write_new(path: str, data: bytes) -> None:
         os.close(fd)
 
 
+def remove_tree(path: str, tries: int = 5) -> None:
+    """Remove a directory tree, quiet if it is gone or goes while this runs.
+
+    ``shutil.rmtree(ignore_errors=True)`` alone can still raise in Python 3.11: the ``fstat`` of a
+    subdirectory it has just opened is not covered, and on a FUSE mount (SeaweedFS) that ``fstat``
+    fails with ENOENT when another client removes the same tree at the same moment. Each try
+    removes what is left; what another client removed counts as removed."""
+    for _ in range(tries):
+        try:
+            shutil.rmtree(path, ignore_errors=True)
+        except FileNotFoundError:
+            continue
+        return
+
+
 def remove_proposal(path: str) -> None:
     """Remove a proposal directory (or a temp file) and what it holds; quiet if it is gone."""
     try:
@@ -373,7 +389,7 @@ def remove_proposal(path: str) -> None:
     except OSError:
         return
     if stat.S_ISDIR(st.st_mode):
-        fsutil.remove_tree(path)
+        remove_tree(path)
     else:
         try:
             os.unlink(path)

@@ -222,7 +222,7 @@ def local_checks(d: str, required_only: bool = False) -> list[dict]:
         check("link create-once", False, link_once)
         check("O_EXCL create-once", False, excl_once)
     finally:
-        fsutil.remove_tree(s)
+        claim.remove_tree(s)
     return out
 
 

@@ -187,7 +187,7 @@ def peer_race(d: str, rounds: int = 50, session: str = "default", timeout: float
         return summary | {"me": s.me, "peer": peer}
     finally:
         if finished and s.get(f"done-{s.peer}") is not None:
-            fsutil.remove_tree(s.root)  # the peer is done with it too
+            claim.remove_tree(s.root)  # the peer is done with it too
             try:
                 os.rmdir(os.path.dirname(s.root))  # .rl-pool-doctor, if no other session is there
             except OSError:
