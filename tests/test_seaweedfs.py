@@ -92,13 +92,31 @@ def test_doctor_on_both_mounts_at_once_finds_the_link_race_and_exclusive_renames
     assert _eventually(lambda: os.listdir(a) == []), os.listdir(a)  # the meeting place is gone
 
 
-def _tree(root: str, dirs: int = 8, files: int = 3) -> None:
+def _race(target, args: list[tuple]) -> list:
+    """Run ``target(*a, barrier, out)`` for each ``a`` in spawned processes sharing one barrier and
+    one queue; what they put on the queue, in the order it came."""
+    ctx = mp.get_context("spawn")
+    barrier, out = ctx.Barrier(len(args)), ctx.Queue()
+    procs = [ctx.Process(target=target, args=(*a, barrier, out)) for a in args]
+    for p in procs:
+        p.start()
+    got = [out.get(timeout=120) for _ in procs]
+    for p in procs:
+        p.join(timeout=30)
+        assert p.exitcode == 0
+    return got
+
+
+def _tree(root: str, dirs: int = 8, files: int = 3) -> str:
+    """A tree of ``dirs`` nested directories of ``files`` files under ``root``; its last directory,
+    relative to ``root``."""
     for k in range(dirs):
-        sub = os.path.join(root, f"d{k}", "inner")
-        os.makedirs(sub)
+        sub = os.path.join(f"d{k}", "inner")
+        os.makedirs(os.path.join(root, sub))
         for j in range(files):
-            with open(os.path.join(sub, f"f{j}"), "wb") as fh:
+            with open(os.path.join(root, sub, f"f{j}"), "wb") as fh:
                 fh.write(b"x")
+    return sub
 
 
 def test_both_mounts_removing_one_tree_at_once_neither_fails_and_it_is_gone(seaweed):
@@ -107,21 +125,11 @@ def test_both_mounts_removing_one_tree_at_once_neither_fails_and_it_is_gone(seaw
     # mount removed the same tree under it.
     a, b = _same_dir(seaweed, "trees")
     rounds = 12
-    for r in range(rounds):
-        _tree(os.path.join(a, f"t{r}"))
-    assert _eventually(lambda: all(os.path.isdir(os.path.join(b, f"t{r}", "d7", "inner"))
-                                   for r in range(rounds)), timeout=10)
-    ctx = mp.get_context("spawn")
-    barrier, out = ctx.Barrier(4), ctx.Queue()
-    trees = [[os.path.join(root, f"t{r}") for r in range(rounds)] for root in (a, b, a, b)]
-    procs = [ctx.Process(target=tree_remover, args=(t, barrier, out)) for t in trees]
-    for p in procs:
-        p.start()
-    errors = [out.get(timeout=120) for _ in procs]
-    for p in procs:
-        p.join(timeout=30)
-        assert p.exitcode == 0
-    assert errors == [None] * len(procs)
+    last = [_tree(os.path.join(a, f"t{r}")) for r in range(rounds)]
+    assert _eventually(lambda: all(os.path.isdir(os.path.join(b, f"t{r}", last[r])) for r in range(rounds)),
+                       timeout=10)
+    removers = [([os.path.join(root, f"t{r}") for r in range(rounds)],) for root in (a, b, a, b)]
+    assert _race(tree_remover, removers) == [None] * len(removers)
     assert _eventually(lambda: os.listdir(a) == [] and os.listdir(b) == [], timeout=10), (os.listdir(a),
                                                                                          os.listdir(b))
 
@@ -130,16 +138,7 @@ def test_claims_racing_from_both_mounts_have_one_winner_that_both_mounts_read(se
     a, b = _same_dir(seaweed, "claims")
     names, per_mount = 30, 2
     roots = [a, b] * per_mount
-    ctx = mp.get_context("spawn")
-    barrier, out = ctx.Barrier(len(roots)), ctx.Queue()
-    procs = [ctx.Process(target=racer, args=(root, names, me, barrier, out))
-             for me, root in enumerate(roots)]
-    for p in procs:
-        p.start()
-    got = dict(out.get(timeout=120) for _ in procs)
-    for p in procs:
-        p.join(timeout=30)
-        assert p.exitcode == 0
+    got = dict(_race(racer, [(root, names, me) for me, root in enumerate(roots)]))
     mounts_won = set()
     for k in range(names):
         results = [got[me][k] for me in range(len(roots))]
