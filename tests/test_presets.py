@@ -108,7 +108,7 @@ REPLACED = [
      ("--gamma", "1", "--baseline", "time", "--gae-lambda", "1", "--policy-epochs", "1")),
     ("halfcheetah", "halfcheetah-v5/screening/momentum-eight-members-seed0-20min",
      ("--pool-size", "8", "--gamma", "1", "--baseline", "time", "--gae-lambda", "1", "--policy-epochs", "1",
-      "--batch-episodes", "5")),
+      "--batch-episodes", "5", "--rate-patience", "0")),
 ]
 
 
@@ -212,14 +212,27 @@ def test_halfcheetah_pools_that_merge_end_long_parent_runs(extra, patience, reve
     assert (cfg.parent_patience, cfg.revert_after) == (patience, revert)
 
 
+@pytest.mark.parametrize("extra,rate_patience", [
+    ((), 0), (("--pool-size", "2"), 0),  # 2 members: pool.json as before
+    (("--pool-size", "3"), 3), (("--pool-size", "8"), 3), (("--pool-size", "16"), 3),
+    (("--pool-size", "8", "--merge", "none"), 0),
+    (("--pool-size", "8", "--rate-patience", "5"), 5),  # given explicitly, it wins
+])
+def test_halfcheetah_pools_that_merge_halve_their_rates_at_a_plateau(extra, rate_patience, tmp_path):
+    # past 3500 the members at 0.0003 fall in most iterations; after 3 without a new best every rate halves
+    _, cfg = _launch_config("halfcheetah", tmp_path, *extra)
+    assert cfg.rate_patience == rate_patience
+
+
 def test_merged_options_only_in_pools_that_merge_from_three():
     preset = presets.PRESETS["halfcheetah"]
-    want = {"parent_patience": 3, "revert_after": 20, "revert_sharpen": 3.0}
+    want = {"parent_patience": 3, "revert_after": 20, "revert_sharpen": 3.0, "rate_patience": 3}
     assert presets.merged_options(preset, 8, "momentum", "parent") == want
     assert presets.merged_options(preset, 8, "adaptive", "parent") == want
     assert presets.merged_options(preset, 2, "momentum", "parent") == {}
     assert presets.merged_options(preset, 8, "none", "parent") == {}
-    assert presets.merged_options(preset, 8, "momentum", "branches") == {"revert_after": 20, "revert_sharpen": 3.0}
+    assert presets.merged_options(preset, 8, "momentum", "branches") == {"revert_after": 20, "revert_sharpen": 3.0,
+                                                                         "rate_patience": 3}
     for name, other in presets.PRESETS.items():
         if not any(key.startswith("merged_") for key in other):
             assert presets.merged_options(other, 8, "adaptive", "parent") == {}, name

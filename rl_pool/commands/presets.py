@@ -29,7 +29,7 @@ PRESETS: dict[str, dict] = {
     "halfcheetah": {"env": "HalfCheetah-v5", **CRITIC_PPO, "batch_episodes": 2,
                     "policy": "mlp", "hidden": "64,64", "init_shape": 20.0, "learning_rates": [0.0001, 0.0003],
                     "merged_merge": "momentum", "merged_parent_patience": 3, "merged_revert_after": 20,
-                    "merged_revert_sharpen": 3.0, "pick": True, "pick_finalists": 6},
+                    "merged_revert_sharpen": 3.0, "merged_rate_patience": 3, "pick": True, "pick_finalists": 6},
     "hopper": {"env": "Hopper-v5", "reward_shift": 1.0, "selection": "branches", "revert_after": 20,
                "revert_sharpen": 3.0, "eval_episodes": 10, "train_episodes": 40, "batch_episodes": 20,
                "learning_rates": [0.01, 0.03]},
