@@ -199,29 +199,20 @@ def test_merged_batch_only_where_a_preset_has_one():
             "merged_batch_episodes", preset.get("batch_episodes")), name
 
 
-@pytest.mark.parametrize("extra,patience,revert", [
-    ((), 0, 0), (("--pool-size", "2"), 0, 0),  # 2 members: pool.json as before
-    (("--pool-size", "3"), 3, 20), (("--pool-size", "8"), 3, 20), (("--pool-size", "16"), 3, 20),
-    (("--pool-size", "8", "--merge", "none"), 0, 0), (("--pool-size", "8", "--merge", "mean"), 0, 0),
-    (("--pool-size", "8", "--parent-patience", "5"), 5, 20),  # given explicitly, each wins
-    (("--pool-size", "8", "--revert-after", "0"), 3, 0),
-    (("--pool-size", "8", "--selection", "branches"), 0, 20),  # no parent to be patient with
+@pytest.mark.parametrize("extra,patience,revert,rate_patience", [
+    ((), 0, 0, 0), (("--pool-size", "2"), 0, 0, 0),  # 2 members: pool.json as before
+    (("--pool-size", "3"), 3, 20, 3), (("--pool-size", "8"), 3, 20, 3), (("--pool-size", "16"), 3, 20, 3),
+    (("--pool-size", "8", "--merge", "none"), 0, 0, 0), (("--pool-size", "8", "--merge", "mean"), 0, 0, 0),
+    (("--pool-size", "8", "--parent-patience", "5"), 5, 20, 3),  # given explicitly, each wins
+    (("--pool-size", "8", "--revert-after", "0"), 3, 0, 3),
+    (("--pool-size", "8", "--rate-patience", "5"), 3, 20, 5),
+    (("--pool-size", "8", "--selection", "branches"), 0, 20, 3),  # no parent to be patient with
 ])
-def test_halfcheetah_pools_that_merge_end_long_parent_runs(extra, patience, revert, tmp_path):
+def test_halfcheetah_pools_that_merge_end_long_parent_runs_and_plateaus(extra, patience, revert, rate_patience,
+                                                                         tmp_path):
+    # past 3500 the members at 0.0003 fall in most iterations: after 3 without a new best every rate halves
     _, cfg = _launch_config("halfcheetah", tmp_path, *extra)
-    assert (cfg.parent_patience, cfg.revert_after) == (patience, revert)
-
-
-@pytest.mark.parametrize("extra,rate_patience", [
-    ((), 0), (("--pool-size", "2"), 0),  # 2 members: pool.json as before
-    (("--pool-size", "3"), 3), (("--pool-size", "8"), 3), (("--pool-size", "16"), 3),
-    (("--pool-size", "8", "--merge", "none"), 0),
-    (("--pool-size", "8", "--rate-patience", "5"), 5),  # given explicitly, it wins
-])
-def test_halfcheetah_pools_that_merge_halve_their_rates_at_a_plateau(extra, rate_patience, tmp_path):
-    # past 3500 the members at 0.0003 fall in most iterations; after 3 without a new best every rate halves
-    _, cfg = _launch_config("halfcheetah", tmp_path, *extra)
-    assert cfg.rate_patience == rate_patience
+    assert (cfg.parent_patience, cfg.revert_after, cfg.rate_patience) == (patience, revert, rate_patience)
 
 
 def test_merged_options_only_in_pools_that_merge_from_three():
