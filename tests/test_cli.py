@@ -198,15 +198,15 @@ def test_train_refuses_foreign_directory_untouched(tmp_path):
     assert os.listdir(d) == ["results.csv"]
 
 
-def test_hopper_preset_terminating_task_short_run(tmp_path):
+def test_walker2d_preset_terminating_task_short_run(tmp_path):
     """A terminating task through its preset: episodes end early, the shift shapes training only."""
-    d = tmp_path / "hopper"
-    rl_pool("train", "--pool-dir", d, "--preset", "hopper", "--member", 0, "--pool-size", 1,
-            "--learning-rate", 0.03, "--iterations", 3, "--max-episode-steps", 80, "--train-episodes", 4,
-            "--eval-episodes", 2, "--quiet", check=0)
+    d = tmp_path / "walker2d"
+    rl_pool("train", "--pool-dir", d, "--preset", "walker2d", "--member", 0, "--pool-size", 1,
+            "--iterations", 3, "--max-episode-steps", 80, "--train-episodes", 4, "--eval-episodes", 2,
+            "--quiet", check=0)
     cfg = json.loads((d / "pool.json").read_text())
     assert (cfg["env"], cfg["reward_shift"], cfg["selection"], cfg["revert_after"]) == \
-        ("Hopper-v5", 1.0, "branches", 20)
+        ("Walker2d-v5", 1.0, "branches", 20)
     assert cfg["batch_episodes"] == 4  # min(10, --train-episodes): no --batch-episodes needed
     for i in (1, 2, 3):
         dep = json.loads((d / f"iterations/{i:06d}/member-000.json").read_text())
@@ -216,7 +216,7 @@ def test_hopper_preset_terminating_task_short_run(tmp_path):
         assert dep["eval_score"] == pytest.approx(dep["eval_return"] - np.mean(lengths))
         sel = json.loads((d / f"iterations/{i:06d}/selected.json").read_text())
         assert sel["winner"] == "branch" and sel["score"] == dep["eval_score"]
-    assert Agent.load(d / "best.npz").meta.env == "Hopper-v5"
+    assert Agent.load(d / "best.npz").meta.env == "Walker2d-v5"
 
 
 def test_halfcheetah_mlp_non_terminating_task_short_run(tmp_path):

@@ -101,6 +101,9 @@ def test_each_committed_run_is_its_preset(name, tmp_path):
 #: Committed runs a preset's change replaced, and the options docs/usage.md gives to resume such a
 #: pool with the preset now.
 REPLACED = [
+    ("hopper", "hopper-v5/screening/revert-sharpen3-seed2-2026-11-28",
+     ("--policy", "linear", "--init-shape", "0", "--gamma", "1", "--baseline", "time", "--gae-lambda", "1",
+      "--policy-epochs", "1", "--reward-shift", "1", "--revert-after", "20", "--revert-sharpen", "3")),
     ("ant", "ant-v5/screening/policy-epochs10-seed0-20min", ("--baseline", "linear", "--minibatch-steps", "0")),
     ("walker2d", "walker2d-v5/screening/policy-epochs10-gae0.95-linear-seed0-20min",
      ("--baseline", "linear", "--minibatch-steps", "0")),
@@ -242,15 +245,17 @@ def test_a_merged_option_replaces_the_plain_one_in_pools_that_merge(tmp_path, mo
         assert (cfg.selection, cfg.merge, cfg.parent_patience) == want, extra
 
 
-def test_hoppers_sharpening_at_reverts_leaves_when_there_are_no_reverts_or_no_exp_link(tmp_path):
-    """``--preset hopper`` sharpens at reverts; a pool of it without reverts or with the softplus link
-    is made without that (not refused for an option the user never gave); given explicitly, it is."""
-    assert _launch_config("hopper", tmp_path)[1].revert_sharpen == 3.0
-    assert _launch_config("hopper", tmp_path, "--revert-after", "0")[1].revert_sharpen == 1.0
-    assert _launch_config("hopper", tmp_path, "--link", "softplus")[1].revert_sharpen == 1.0
-    assert _launch_config("hopper", tmp_path, "--revert-sharpen", "2")[1].revert_sharpen == 2.0
+def test_sharpening_at_reverts_leaves_when_there_are_no_reverts_or_no_exp_link(tmp_path):
+    """``--preset halfcheetah`` sharpens at reverts in a pool that merges; such a pool without reverts
+    or with the softplus link is made without that (not refused for an option the user never gave);
+    given explicitly, it is."""
+    eight = ("--pool-size", "8")
+    assert _launch_config("halfcheetah", tmp_path, *eight)[1].revert_sharpen == 3.0
+    assert _launch_config("halfcheetah", tmp_path, *eight, "--revert-after", "0")[1].revert_sharpen == 1.0
+    assert _launch_config("halfcheetah", tmp_path, *eight, "--link", "softplus")[1].revert_sharpen == 1.0
+    assert _launch_config("halfcheetah", tmp_path, *eight, "--revert-sharpen", "2")[1].revert_sharpen == 2.0
     with pytest.raises(UsageError, match="--revert-sharpen needs --revert-after"):
-        _launch_config("hopper", tmp_path, "--revert-after", "0", "--revert-sharpen", "2")
+        _launch_config("halfcheetah", tmp_path, *eight, "--revert-after", "0", "--revert-sharpen", "2")
 
 
 def test_ants_extra_passes_leave_with_another_step_rule(tmp_path):

@@ -18,7 +18,7 @@ from rl_pool.protocol.selection import RULES_OF_THREE
 
 #: Each preset was chosen by measured runs; why each value is there, with the runs that decided
 #: it, is in docs/results.md (one section per task) and the dated notebook, docs/notebook.md.
-#: Humanoid's learner, which five presets share: a discount of 0.99, generalised advantage estimation on a
+#: Humanoid's learner, which six presets share: a discount of 0.99, generalised advantage estimation on a
 #: learned critic, nine more passes over each batch up PPO's clipped surrogate in minibatches of 64 steps,
 #: and the critic's epochs in minibatches too.
 CRITIC_PPO = {"gamma": 0.99, "baseline": "value", "gae_lambda": 0.95, "policy_epochs": 10, "minibatch_steps": 64,
@@ -30,9 +30,9 @@ PRESETS: dict[str, dict] = {
                     "policy": "mlp", "hidden": "64,64", "init_shape": 20.0, "learning_rates": [0.0001, 0.0003],
                     "merged_merge": "momentum", "merged_parent_patience": 3, "merged_revert_after": 20,
                     "merged_revert_sharpen": 3.0, "merged_rate_patience": 3, "pick": True, "pick_finalists": 6},
-    "hopper": {"env": "Hopper-v5", "reward_shift": 1.0, "selection": "branches", "revert_after": 20,
-               "revert_sharpen": 3.0, "eval_episodes": 10, "train_episodes": 40, "batch_episodes": 20,
-               "learning_rates": [0.01, 0.03]},
+    "hopper": {"env": "Hopper-v5", **CRITIC_PPO, "selection": "branches", "eval_episodes": 10, "train_episodes": 40,
+               "batch_episodes": 20, "policy": "mlp", "hidden": "64,64", "init_shape": 20.0,
+               "learning_rates": [0.0001, 0.0003]},
     "walker2d": {"env": "Walker2d-v5", "reward_shift": 1.0, **CRITIC_PPO, "selection": "branches",
                  "revert_after": 20, "eval_episodes": 10, "train_episodes": 40, "batch_episodes": 20,
                  "policy": "mlp", "hidden": "64,64", "init_shape": 20.0, "learning_rates": [0.0001, 0.0003]},
