@@ -245,19 +245,6 @@ def test_a_merged_option_replaces_the_plain_one_in_pools_that_merge(tmp_path, mo
         assert (cfg.selection, cfg.merge, cfg.parent_patience) == want, extra
 
 
-def test_sharpening_at_reverts_leaves_when_there_are_no_reverts_or_no_exp_link(tmp_path):
-    """``--preset halfcheetah`` sharpens at reverts in a pool that merges; such a pool without reverts
-    or with the softplus link is made without that (not refused for an option the user never gave);
-    given explicitly, it is."""
-    eight = ("--pool-size", "8")
-    assert _launch_config("halfcheetah", tmp_path, *eight)[1].revert_sharpen == 3.0
-    assert _launch_config("halfcheetah", tmp_path, *eight, "--revert-after", "0")[1].revert_sharpen == 1.0
-    assert _launch_config("halfcheetah", tmp_path, *eight, "--link", "softplus")[1].revert_sharpen == 1.0
-    assert _launch_config("halfcheetah", tmp_path, *eight, "--revert-sharpen", "2")[1].revert_sharpen == 2.0
-    with pytest.raises(UsageError, match="--revert-sharpen needs --revert-after"):
-        _launch_config("halfcheetah", tmp_path, *eight, "--revert-after", "0", "--revert-sharpen", "2")
-
-
 def test_ants_extra_passes_leave_with_another_step_rule(tmp_path):
     """``--preset ant`` takes 10 passes over each batch in minibatches, which need Adam: with
     ``--optimizer normalized`` the pool is made without them (not refused for an option the user
@@ -291,10 +278,16 @@ def test_a_presets_minibatches_leave_with_the_passes_or_the_critic_they_serve(na
     ((), 1.0), (("--pool-size", "8"), 3.0), (("--pool-size", "16"), 3.0),
     (("--pool-size", "8", "--merge", "none"), 1.0),  # a pool that never merges has no reverts either
     (("--pool-size", "8", "--revert-after", "0"), 1.0),  # no reverts: left out, not refused
+    (("--pool-size", "8", "--link", "softplus"), 1.0),  # sharpening needs the exp link: left out too
     (("--pool-size", "8", "--revert-sharpen", "2"), 2.0),
 ])
 def test_halfcheetah_pools_that_merge_sharpen_at_reverts(extra, sharpen, tmp_path):
     assert _launch_config("halfcheetah", tmp_path, *extra)[1].revert_sharpen == sharpen
+
+
+def test_sharpening_given_explicitly_without_reverts_is_refused(tmp_path):
+    with pytest.raises(UsageError, match="--revert-sharpen needs --revert-after"):
+        _launch_config("halfcheetah", tmp_path, "--pool-size", "8", "--revert-after", "0", "--revert-sharpen", "2")
 
 
 def test_a_preset_that_ends_with_a_pick_and_the_option_that_wins(tmp_path):
