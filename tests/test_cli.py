@@ -199,14 +199,14 @@ def test_train_refuses_foreign_directory_untouched(tmp_path):
 
 
 def test_walker2d_preset_terminating_task_short_run(tmp_path):
-    """A terminating task through its preset: episodes end early, the shift shapes training only."""
+    """A terminating task through its preset with the survival bonus shifted off: episodes end
+    early, the shift shapes training only."""
     d = tmp_path / "walker2d"
-    rl_pool("train", "--pool-dir", d, "--preset", "walker2d", "--member", 0, "--pool-size", 1,
+    rl_pool("train", "--pool-dir", d, "--preset", "walker2d", "--reward-shift", 1, "--member", 0, "--pool-size", 1,
             "--iterations", 3, "--max-episode-steps", 80, "--train-episodes", 4, "--eval-episodes", 2,
             "--quiet", check=0)
     cfg = json.loads((d / "pool.json").read_text())
-    assert (cfg["env"], cfg["reward_shift"], cfg["selection"], cfg["revert_after"]) == \
-        ("Walker2d-v5", 1.0, "branches", 20)
+    assert (cfg["env"], cfg["reward_shift"], cfg["selection"]) == ("Walker2d-v5", 1.0, "branches")
     assert cfg["batch_episodes"] == 4  # min(10, --train-episodes): no --batch-episodes needed
     for i in (1, 2, 3):
         dep = json.loads((d / f"iterations/{i:06d}/member-000.json").read_text())
