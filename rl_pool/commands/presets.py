@@ -24,7 +24,7 @@ from rl_pool.protocol.selection import RULES_OF_THREE
 CRITIC_PPO = {"gamma": 0.99, "baseline": "value", "gae_lambda": 0.95, "policy_epochs": 10, "minibatch_steps": 64,
               "value_minibatch_steps": 64}
 #: That learner on an MLP started sharp, with the branches alone competing on 10 evaluation episodes
-#: and 40 training episodes in steps of 20: Hopper's and Walker2d's preset, and Humanoid's with reverts.
+#: and 40 training episodes in steps of 20: Hopper's, Walker2d's and Ant's preset, and Humanoid's with reverts.
 CRITIC_PPO_BRANCHES = {**CRITIC_PPO, "selection": "branches", "eval_episodes": 10, "train_episodes": 40,
                        "batch_episodes": 20, "policy": "mlp", "hidden": "64,64", "init_shape": 20.0,
                        "learning_rates": [0.0001, 0.0003]}
@@ -37,8 +37,7 @@ PRESETS: dict[str, dict] = {
                     "merged_revert_sharpen": 3.0, "merged_rate_patience": 3, "pick": True, "pick_finalists": 6},
     "hopper": {"env": "Hopper-v5", **CRITIC_PPO_BRANCHES},
     "walker2d": {"env": "Walker2d-v5", **CRITIC_PPO_BRANCHES},
-    "ant": {"env": "Ant-v5", **CRITIC_PPO, "eval_episodes": 10, "revert_after": 20, "best_score": "mean",
-            "policy": "mlp", "hidden": "64,64", "init_shape": 20.0, "learning_rates": [0.0001, 0.0003]},
+    "ant": {"env": "Ant-v5", **CRITIC_PPO_BRANCHES, "best_score": "mean"},
     "inverted-double-pendulum": {"env": "InvertedDoublePendulum-v5", "gamma": 0.99, "baseline": "linear",
                                  "gae_lambda": 0.95, "policy_epochs": 10, "eval_episodes": 30, "policy": "mlp",
                                  "hidden": "64,64", "init_shape": 20.0, "parent_patience": 3, "revert_after": 20,
