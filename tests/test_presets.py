@@ -101,9 +101,11 @@ def test_each_committed_run_is_its_preset(name, tmp_path):
 #: Committed runs a preset's change replaced, and the options docs/usage.md gives to resume such a
 #: pool with the preset now.
 REPLACED = [
+    ("hopper", "hopper-v5/screening/critic-ppo-seed0-20min-2026-12-07", ("--rate-anneal", "0")),
     ("hopper", "hopper-v5/screening/revert-sharpen3-seed2-2026-11-28",
      ("--policy", "linear", "--init-shape", "0", "--gamma", "1", "--baseline", "time", "--gae-lambda", "1",
-      "--policy-epochs", "1", "--reward-shift", "1", "--revert-after", "20", "--revert-sharpen", "3")),
+      "--policy-epochs", "1", "--reward-shift", "1", "--revert-after", "20", "--revert-sharpen", "3",
+      "--rate-anneal", "0")),
     ("ant", "ant-v5/screening/critic-ppo-seed0-20min-2026-12-07",
      ("--selection", "parent", "--train-episodes", "20", "--batch-episodes", "10", "--revert-after", "20")),
     ("ant", "ant-v5/screening/policy-epochs10-seed0-20min",
@@ -304,7 +306,9 @@ def test_a_preset_that_ends_with_a_pick_and_the_option_that_wins(tmp_path):
 
     assert pick("--preset", "halfcheetah") and pick("--preset", "halfcheetah", "--pool-size", "8")
     assert not pick("--preset", "halfcheetah", "--no-pick")
-    assert not pick("--preset", "hopper") and pick("--preset", "hopper", "--pick") and not pick()
+    assert pick("--preset", "hopper") and not pick("--preset", "hopper", "--no-pick")
+    assert pick("--preset", "inverted-pendulum")
+    assert not pick("--preset", "walker2d") and pick("--preset", "walker2d", "--pick") and not pick()
     # `train` runs one member and has no pick: the preset leaves the launch's key out there
     args = cli.build_parser().parse_args(["train", "--pool-dir", str(tmp_path), "--preset", "halfcheetah"])
     cli._apply_preset(args)

@@ -24,7 +24,8 @@ from rl_pool.protocol.selection import RULES_OF_THREE
 CRITIC_PPO = {"gamma": 0.99, "baseline": "value", "gae_lambda": 0.95, "policy_epochs": 10, "minibatch_steps": 64,
               "value_minibatch_steps": 64}
 #: That learner on an MLP started sharp, with the branches alone competing on 10 evaluation episodes
-#: and 40 training episodes in steps of 20: Hopper's, Walker2d's and Ant's preset, and Humanoid's with reverts.
+#: and 40 training episodes in steps of 20: Walker2d's and Ant's preset, Hopper's with its rates annealed and a
+#: pick, and Humanoid's with reverts.
 CRITIC_PPO_BRANCHES = {**CRITIC_PPO, "selection": "branches", "eval_episodes": 10, "train_episodes": 40,
                        "batch_episodes": 20, "policy": "mlp", "hidden": "64,64", "init_shape": 20.0,
                        "learning_rates": [0.0001, 0.0003]}
@@ -35,7 +36,7 @@ PRESETS: dict[str, dict] = {
                     "policy": "mlp", "hidden": "64,64", "init_shape": 20.0, "learning_rates": [0.0001, 0.0003],
                     "merged_merge": "momentum", "merged_parent_patience": 3, "merged_revert_after": 20,
                     "merged_revert_sharpen": 3.0, "merged_rate_patience": 3, "pick": True, "pick_finalists": 6},
-    "hopper": {"env": "Hopper-v5", **CRITIC_PPO_BRANCHES},
+    "hopper": {"env": "Hopper-v5", **CRITIC_PPO_BRANCHES, "rate_anneal": 300, "pick": True, "pick_finalists": 6},
     "walker2d": {"env": "Walker2d-v5", **CRITIC_PPO_BRANCHES},
     "ant": {"env": "Ant-v5", **CRITIC_PPO_BRANCHES, "best_score": "mean"},
     "inverted-double-pendulum": {"env": "InvertedDoublePendulum-v5", "gamma": 0.99, "baseline": "linear",
@@ -47,7 +48,7 @@ PRESETS: dict[str, dict] = {
                 "policy": "mlp", "hidden": "64,64", "init_shape": 20.0, "baseline": "linear",
                 "learning_rates": [0.001, 0.003]},
     "inverted-pendulum": {"env": "InvertedPendulum-v5", "selection": "branches", "revert_after": 20,
-                          "eval_episodes": 10, "learning_rates": [0.01, 0.1]},
+                          "eval_episodes": 10, "learning_rates": [0.01, 0.1], "pick": True},
     "pusher": {"env": "Pusher-v5", **CRITIC_PPO, "eval_episodes": 20, "train_episodes": 100,
                "batch_episodes": 50, "policy": "mlp", "hidden": "64,64", "init_shape": 20.0, "rate_anneal": 500,
                "learning_rates": [0.0001, 0.0003]},
