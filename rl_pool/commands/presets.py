@@ -29,21 +29,24 @@ CRITIC_PPO = {"gamma": 0.99, "baseline": "value", "gae_lambda": 0.95, "policy_ep
 CRITIC_PPO_BRANCHES = {**CRITIC_PPO, "selection": "branches", "eval_episodes": 10, "train_episodes": 40,
                        "batch_episodes": 20, "policy": "mlp", "hidden": "64,64", "init_shape": 20.0,
                        "learning_rates": [0.0001, 0.0003]}
+#: A launch that ends with a pick whose 6 best candidates play a final round (HalfCheetah's, Hopper's and
+#: InvertedDoublePendulum's presets).
+PICK_WITH_FINAL_ROUND = {"pick": True, "pick_finalists": 6}
 
 PRESETS: dict[str, dict] = {
     "swimmer": {"env": "Swimmer-v5", "learning_rates": [0.01, 0.1]},
     "halfcheetah": {"env": "HalfCheetah-v5", **CRITIC_PPO, "batch_episodes": 2,
                     "policy": "mlp", "hidden": "64,64", "init_shape": 20.0, "learning_rates": [0.0001, 0.0003],
                     "merged_merge": "momentum", "merged_parent_patience": 3, "merged_revert_after": 20,
-                    "merged_revert_sharpen": 3.0, "merged_rate_patience": 3, "pick": True, "pick_finalists": 6},
-    "hopper": {"env": "Hopper-v5", **CRITIC_PPO_BRANCHES, "rate_anneal": 300, "pick": True, "pick_finalists": 6},
+                    "merged_revert_sharpen": 3.0, "merged_rate_patience": 3, **PICK_WITH_FINAL_ROUND},
+    "hopper": {"env": "Hopper-v5", **CRITIC_PPO_BRANCHES, "rate_anneal": 300, **PICK_WITH_FINAL_ROUND},
     "walker2d": {"env": "Walker2d-v5", **CRITIC_PPO_BRANCHES},
     "ant": {"env": "Ant-v5", **CRITIC_PPO_BRANCHES, "best_score": "mean"},
     "inverted-double-pendulum": {"env": "InvertedDoublePendulum-v5", "gamma": 0.99, "baseline": "linear",
                                  "gae_lambda": 0.95, "policy_epochs": 10, "eval_episodes": 30, "policy": "mlp",
                                  "hidden": "64,64", "init_shape": 20.0, "parent_patience": 3, "revert_after": 20,
                                  "best_score": "mean", "train_env_kwargs": {"reset_noise_scale": 0.13},
-                                 "learning_rates": [0.001, 0.003], "pick": True, "pick_finalists": 6},
+                                 "learning_rates": [0.001, 0.003], **PICK_WITH_FINAL_ROUND},
     "reacher": {"env": "Reacher-v5", "eval_episodes": 20, "train_episodes": 100, "batch_episodes": 50,
                 "policy": "mlp", "hidden": "64,64", "init_shape": 20.0, "baseline": "linear",
                 "learning_rates": [0.001, 0.003]},
